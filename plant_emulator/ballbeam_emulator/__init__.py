@@ -1,0 +1,1 @@
+"""The SRV02 plant-emulator process: physics behind a CAN bus."""

@@ -1,0 +1,1 @@
+"""ballbeam-hil: optimal tracking controller bench for the SRV02 ball-and-beam."""

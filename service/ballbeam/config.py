@@ -1,0 +1,315 @@
+"""Run configuration: pydantic models loaded from TOML files in ``configs/``.
+
+A config file may ``extends = "other.toml"`` (path relative to the file) and override a few
+keys; ``--set dotted.key=value`` overrides are merged the same way and validated with the rest.
+Unknown keys, wrong types and out-of-range values are refused with a message naming the key.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from ballbeam.core.model import LinearModel, PlantConstants
+from ballbeam.errors import ConfigError
+
+MAX_EXTENDS_DEPTH = 16
+# Interface-local IPv6 multicast (scope 1): the kernel loops it back and never transmits it.
+DEFAULT_BUS_GROUP = "ff11:7079:7468:6f6e:6465:6d6f:6d63:6173"
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True)
+
+
+class ModelSection(_Section):
+    """The controller's design model: the paper's constants (DESIGN.md §2)."""
+
+    torque_constant_nm_per_a: float = Field(0.00767, gt=0)
+    gear_ratio: float = Field(70.0, gt=0)
+    armature_resistance_ohm: float = Field(2.6, gt=0)
+    armature_inertia_kg_m2: float = Field(3.87e-7, gt=0)
+    gravity_m_per_s2: float = Field(9.81, gt=0)
+    arm_radius_m: float = Field(0.0254, gt=0)
+    beam_length_m: float = Field(0.4318, gt=0)
+    angle_sensor_gain: float = Field(57.0, gt=0)
+    position_sensor_gain: float = Field(100.0, gt=0)
+
+    def constants(self) -> PlantConstants:
+        return PlantConstants(**self.model_dump())
+
+
+class LimitsSection(_Section):
+    voltage_v: float = Field(5.0, gt=0, le=24, description="motor voltage bound |u|")
+    theta_deg: float = Field(52.0, gt=0, lt=90, description="servo angle bound |θ|")
+
+    @property
+    def theta_rad(self) -> float:
+        return math.radians(self.theta_deg)
+
+
+class InitialSection(_Section):
+    theta_deg: float = Field(-52.0, ge=-90, le=90)
+    theta_rate_deg_s: float = Field(0.0, ge=-5000, le=5000)
+    ball_velocity_m_s: float = Field(0.0, ge=-5, le=5)
+    ball_position_m: float = Field(0.195, ge=-1, le=1)
+
+    def state(self) -> np.ndarray:
+        """Initial state vector (θ, θ̇, ẋ, x) in SI units."""
+        return np.array(
+            [
+                math.radians(self.theta_deg),
+                math.radians(self.theta_rate_deg_s),
+                self.ball_velocity_m_s,
+                self.ball_position_m,
+            ]
+        )
+
+
+PlanKind = Literal["bang_bang", "rate_limited", "time_optimal"]
+
+
+class PlanSection(_Section):
+    kind: PlanKind = "time_optimal"
+    servo_rate_limit_rad_s: float = Field(
+        9.325, gt=0, le=100, description="rate_limited: bound on |θ̇| (paper: 9.325 or 8)"
+    )
+    voltage_margin_v: float = Field(
+        0.5, ge=0, description="time_optimal: voltage kept back for the tracker's corrections"
+    )
+    step_s: float | None = Field(
+        None, gt=0, le=0.05, description="time_optimal: control grid; default the controller period"
+    )
+
+
+class TrackerSection(_Section):
+    q: tuple[float, float, float, float] = Field(
+        (50.0, 0.0, 20.0, 2000.0), description="diagonal of Q for (θ, θ̇, ẋ, x)"
+    )
+    r: float = Field(0.05, gt=0, description="input weight R")
+    horizon_s: float = Field(8.0, gt=0, le=3600)
+    terminal: Literal["stationary", "zero"] = "stationary"
+    input_reference: Literal["feedforward", "zero"] = Field(
+        "feedforward",
+        description="penalise (u - u_d) with the plan's input (feedforward) or u itself (paper)",
+    )
+
+    @field_validator("q")
+    @classmethod
+    def _q_positive_semidefinite(cls, q: tuple[float, ...]) -> tuple[float, ...]:
+        if any(not math.isfinite(value) or value < 0 for value in q):
+            raise ValueError(f"Q must be positive semi-definite (diagonal >= 0), got {list(q)}")
+        return q
+
+
+class ObserverSection(_Section):
+    input_noise_v: float = Field(
+        0.3, gt=0, description="std of the unmodelled input (dead zone, friction) per sample"
+    )
+    ball_noise_m_s2: float = Field(0.05, gt=0, description="std of unmodelled ball acceleration")
+    angle_noise_rad: float | None = Field(
+        None, gt=0, description="angle measurement noise std; default from the encoder step"
+    )
+    position_noise_m: float | None = Field(
+        None, gt=0, description="position measurement noise std; default from plant noise"
+    )
+
+
+class ControllerSection(_Section):
+    rate_hz: int = Field(1000, ge=10, le=20000)
+
+    @property
+    def period_ns(self) -> int:
+        return 1_000_000_000 // self.rate_hz
+
+    @property
+    def period_s(self) -> float:
+        return self.period_ns * 1e-9
+
+
+class PlantSection(_Section):
+    """The emulated SRV02: the true plant, which may differ from the design model."""
+
+    motor_gain_scale: float = Field(1.0, gt=0.1, le=10, description="true α / model α")
+    ball_gain_scale: float = Field(1.0, gt=0.1, le=10, description="true γ / model γ")
+    saturation_v: float = Field(5.0, gt=0, le=24)
+    deadzone_v: float = Field(0.1, ge=0, le=5)
+    encoder_counts_per_rev: int = Field(4096, ge=16, le=1 << 24)
+    adc_bits: int = Field(16, ge=4, le=24)
+    adc_range_v: float = Field(20.0, gt=0, description="ADC full scale (±10 V is 20 V)")
+    beam_span_v: float = Field(10.0, gt=0, description="track potentiometer volts over the beam")
+    position_noise_m: float = Field(2e-4, ge=0, le=0.05, description="sensor noise std")
+    noise_bandwidth_hz: float = Field(200.0, gt=0, description="band limit of the sensor noise")
+    nonlinear_ball: bool = False
+    hard_stop_deg: float = Field(56.0, gt=0, lt=90)
+    sensor_rate_hz: int = Field(1000, ge=10, le=20000)
+    physics_substeps: int = Field(10, ge=10, le=1000, description="physics steps per sensor period")
+    seed: int = Field(1, ge=0)
+
+    @property
+    def encoder_step_rad(self) -> float:
+        return 2.0 * math.pi / self.encoder_counts_per_rev
+
+    def adc_step_m(self, beam_length_m: float) -> float:
+        volts_per_m = self.beam_span_v / beam_length_m
+        return self.adc_range_v / 2**self.adc_bits / volts_per_m
+
+
+class RunSection(_Section):
+    duration_s: float = Field(4.0, gt=0, le=86400)
+    mode: Literal["lockstep", "realtime"] = "lockstep"
+
+
+class BusSection(_Section):
+    """python-can bus, as python-can configures it."""
+
+    interface: str = "udp_multicast"
+    channel: str = DEFAULT_BUS_GROUP
+    port: int = Field(43113, ge=1, le=65535)
+    allow_off_host: bool = Field(
+        False, description="permit a multicast group whose traffic leaves this host"
+    )
+    options: dict[str, str | int | float | bool] = Field(default_factory=dict)
+
+
+class Config(_Section):
+    model: ModelSection = ModelSection()
+    limits: LimitsSection = LimitsSection()
+    initial: InitialSection = InitialSection()
+    plan: PlanSection = PlanSection()
+    tracker: TrackerSection = TrackerSection()
+    observer: ObserverSection = ObserverSection()
+    controller: ControllerSection = ControllerSection()
+    plant: PlantSection = PlantSection()
+    run: RunSection = RunSection()
+    bus: BusSection = BusSection()
+    expect: dict[str, dict[str, float]] = Field(
+        default_factory=dict, description="scenario bounds: metric = { min = .., max = .. }"
+    )
+
+    @model_validator(mode="after")
+    def _consistent(self) -> Config:
+        if 1_000_000_000 % self.controller.rate_hz:
+            raise ValueError(
+                f"controller.rate_hz = {self.controller.rate_hz} does not give a whole number "
+                "of nanoseconds per period"
+            )
+        if self.plant.sensor_rate_hz % self.controller.rate_hz:
+            raise ValueError(
+                f"controller.rate_hz = {self.controller.rate_hz} must divide "
+                f"plant.sensor_rate_hz = {self.plant.sensor_rate_hz}"
+            )
+        if abs(self.initial.theta_deg) > self.plant.hard_stop_deg:
+            raise ValueError(
+                f"initial.theta_deg = {self.initial.theta_deg} is beyond the servo hard stops "
+                f"(plant.hard_stop_deg = {self.plant.hard_stop_deg})"
+            )
+        if self.plan.voltage_margin_v >= self.limits.voltage_v:
+            raise ValueError(
+                f"plan.voltage_margin_v = {self.plan.voltage_margin_v} leaves no voltage under "
+                f"limits.voltage_v = {self.limits.voltage_v}"
+            )
+        for metric, bound in self.expect.items():
+            unknown = set(bound) - {"min", "max"}
+            if unknown or not bound:
+                raise ValueError(
+                    f"expect.{metric} must be a table with 'min' and/or 'max', got {bound}"
+                )
+        return self
+
+    # Derived objects used across the project.
+    def constants(self) -> PlantConstants:
+        return self.model.constants()
+
+    def design_model(self) -> LinearModel:
+        return LinearModel.from_constants(self.constants())
+
+    def true_model(self) -> LinearModel:
+        return LinearModel.from_constants(
+            self.constants(), self.plant.motor_gain_scale, self.plant.ball_gain_scale
+        )
+
+
+def _deep_merge(base: dict[str, Any], override: Mapping[str, Any]) -> dict[str, Any]:
+    merged = dict(base)
+    for key, value in override.items():
+        if isinstance(value, Mapping) and isinstance(merged.get(key), dict):
+            merged[key] = _deep_merge(merged[key], value)
+        else:
+            merged[key] = value
+    return merged
+
+
+def _read_toml(path: Path, depth: int = 0) -> dict[str, Any]:
+    if depth > MAX_EXTENDS_DEPTH:
+        raise ConfigError(f"{path}: 'extends' chain is deeper than {MAX_EXTENDS_DEPTH} files")
+    try:
+        with path.open("rb") as stream:
+            data = tomllib.load(stream)
+    except FileNotFoundError as error:
+        raise ConfigError(f"config file not found: {path}") from error
+    except IsADirectoryError as error:
+        raise ConfigError(f"config path is a directory, not a file: {path}") from error
+    except (OSError, UnicodeDecodeError) as error:
+        raise ConfigError(f"cannot read config file {path}: {error}") from error
+    except tomllib.TOMLDecodeError as error:
+        raise ConfigError(f"{path}: not valid TOML: {error}") from error
+    parent = data.pop("extends", None)
+    if parent is None:
+        return data
+    if not isinstance(parent, str):
+        raise ConfigError(f"{path}: 'extends' must be a file path string")
+    base = _read_toml((path.parent / parent).resolve(), depth + 1)
+    return _deep_merge(base, data)
+
+
+def parse_override(assignment: str) -> dict[str, Any]:
+    """``"a.b=1.5"`` → ``{"a": {"b": 1.5}}``; the value is TOML, or else a bare string."""
+    key, separator, text = assignment.partition("=")
+    key = key.strip()
+    if not separator or not key or any(not part.strip() for part in key.split(".")):
+        raise ConfigError(f"override {assignment!r} is not of the form dotted.key=value")
+    try:
+        value = tomllib.loads(f"value = {text.strip()}")["value"]
+    except tomllib.TOMLDecodeError:
+        value = text.strip()
+    nested: dict[str, Any] = {}
+    cursor = nested
+    parts = [part.strip() for part in key.split(".")]
+    for part in parts[:-1]:
+        cursor = cursor.setdefault(part, {})
+    cursor[parts[-1]] = value
+    return nested
+
+
+def _describe(error: ValidationError, source: str) -> str:
+    lines = []
+    for item in error.errors():
+        key = ".".join(str(part) for part in item["loc"]) or "(top level)"
+        if item["type"] == "extra_forbidden":
+            lines.append(f"unknown key '{key}'")
+        else:
+            message = item["msg"].removeprefix("Value error, ")
+            lines.append(f"'{key}': {message}" if item["loc"] else message)
+    return f"{source}: " + "; ".join(lines)
+
+
+def config_from_mapping(data: Mapping[str, Any], source: str = "config") -> Config:
+    try:
+        return Config.model_validate(dict(data))
+    except ValidationError as error:
+        raise ConfigError(_describe(error, source)) from error
+
+
+def load_config(path: str | Path | None, overrides: Iterable[str] = ()) -> Config:
+    """Load ``path`` (or the paper's defaults when None) and apply ``--set`` overrides."""
+    data: dict[str, Any] = {} if path is None else _read_toml(Path(path))
+    for assignment in overrides:
+        data = _deep_merge(data, parse_override(assignment))
+    return config_from_mapping(data, str(path) if path is not None else "defaults")

@@ -1,0 +1,1 @@
+"""Planners: bang-bang, servo-rate-limited and full-model time-optimal paths."""

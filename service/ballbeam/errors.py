@@ -1,0 +1,33 @@
+"""One exception hierarchy for the whole project.
+
+Every error a user can cause derives from :class:`BallbeamError` and from the builtin it
+resembles, so callers may catch either. The CLI turns any of them into one line and exit 2.
+"""
+
+
+class BallbeamError(Exception):
+    """Root of every error this project raises on purpose."""
+
+
+class ConfigError(BallbeamError, ValueError):
+    """A configuration file, override or argument is missing, malformed or out of range."""
+
+
+class PlanningError(BallbeamError, ValueError):
+    """No path satisfies the requested limits from the requested start."""
+
+
+class FrameError(BallbeamError, ValueError):
+    """A CAN frame is malformed, corrupt, or outside the frame contract."""
+
+
+class BusError(BallbeamError, OSError):
+    """The CAN bus cannot be opened or used as configured."""
+
+
+class LogFormatError(BallbeamError, ValueError):
+    """A file is not a readable ballbeam MCAP log."""
+
+
+class RecorderError(BallbeamError, OSError):
+    """The run recorder cannot write its log."""
