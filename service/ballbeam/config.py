@@ -89,7 +89,7 @@ class PlanSection(_Section):
 
 
 class TrackerSection(_Section):
-    q: tuple[float, float, float, float] = Field(
+    q: tuple[float, ...] = Field(
         (50.0, 0.0, 20.0, 2000.0), description="diagonal of Q for (θ, θ̇, ẋ, x)"
     )
     r: float = Field(0.05, gt=0, description="input weight R")
@@ -103,6 +103,8 @@ class TrackerSection(_Section):
     @field_validator("q")
     @classmethod
     def _q_positive_semidefinite(cls, q: tuple[float, ...]) -> tuple[float, ...]:
+        if len(q) != 4:
+            raise ValueError(f"Q needs 4 diagonal entries for (θ, θ̇, ẋ, x), got {len(q)}")
         if any(not math.isfinite(value) or value < 0 for value in q):
             raise ValueError(f"Q must be positive semi-definite (diagonal >= 0), got {list(q)}")
         return q
@@ -123,6 +125,20 @@ class ObserverSection(_Section):
 
 class ControllerSection(_Section):
     rate_hz: int = Field(1000, ge=10, le=20000)
+    sensor_timeout_periods: int = Field(
+        3, ge=1, le=10000, description="periods without a sensor frame before a fault (0 V)"
+    )
+    on_sensor_loss: Literal["stop", "resume"] = Field(
+        "stop", description="after a sensor-loss fault: end the run, or resume when frames return"
+    )
+    phase_offset_us: int = Field(
+        250, ge=0, le=100_000, description="real time: cycle start after the sensor frame"
+    )
+    start_timeout_s: float = Field(10.0, gt=0, le=3600, description="wait for the plant")
+    lockstep_timeout_s: float = Field(
+        2.0, gt=0, le=3600, description="lock-step: silence after which the plant is lost"
+    )
+    spin_us: int = Field(200, ge=0, le=10_000, description="busy-wait before each deadline")
 
     @property
     def period_ns(self) -> int:
@@ -140,10 +156,6 @@ class PlantSection(_Section):
     ball_gain_scale: float = Field(1.0, gt=0.1, le=10, description="true γ / model γ")
     saturation_v: float = Field(5.0, gt=0, le=24)
     deadzone_v: float = Field(0.1, ge=0, le=5)
-    encoder_counts_per_rev: int = Field(4096, ge=16, le=1 << 24)
-    adc_bits: int = Field(16, ge=4, le=24)
-    adc_range_v: float = Field(20.0, gt=0, description="ADC full scale (±10 V is 20 V)")
-    beam_span_v: float = Field(10.0, gt=0, description="track potentiometer volts over the beam")
     position_noise_m: float = Field(2e-4, ge=0, le=0.05, description="sensor noise std")
     noise_bandwidth_hz: float = Field(200.0, gt=0, description="band limit of the sensor noise")
     nonlinear_ball: bool = False
@@ -151,6 +163,27 @@ class PlantSection(_Section):
     sensor_rate_hz: int = Field(1000, ge=10, le=20000)
     physics_substeps: int = Field(10, ge=10, le=1000, description="physics steps per sensor period")
     seed: int = Field(1, ge=0)
+    hold_until_enabled: bool = Field(
+        True, description="keep the ball at its start until the first enabled command"
+    )
+    watchdog_ms: float = Field(
+        20.0, gt=0, le=10_000, description="no valid command for this long → 0 V"
+    )
+    lockstep_resend_ms: float = Field(
+        20.0, gt=0, le=10_000, description="lock-step: resend the sample if no command came"
+    )
+    command_loss: float = Field(0.0, ge=0, lt=1, description="fault injection: drop fraction")
+    sensor_loss: float = Field(0.0, ge=0, lt=1, description="fault injection: drop fraction")
+
+
+
+class SensorsSection(_Section):
+    """Sensor hardware both sides agree on: frames carry raw encoder and ADC counts."""
+
+    encoder_counts_per_rev: int = Field(4096, ge=16, le=1 << 15)
+    adc_bits: int = Field(16, ge=4, le=16)
+    adc_range_v: float = Field(20.0, gt=0, le=100, description="ADC full scale (±10 V is 20 V)")
+    beam_span_v: float = Field(10.0, gt=0, le=100, description="track pot volts over the beam")
 
     @property
     def encoder_step_rad(self) -> float:
@@ -164,6 +197,7 @@ class PlantSection(_Section):
 class RunSection(_Section):
     duration_s: float = Field(4.0, gt=0, le=86400)
     mode: Literal["lockstep", "realtime"] = "lockstep"
+    log_dir: str = Field("logs", min_length=1, description="where run MCAP files go")
 
 
 class BusSection(_Section):
@@ -172,6 +206,9 @@ class BusSection(_Section):
     interface: str = "udp_multicast"
     channel: str = DEFAULT_BUS_GROUP
     port: int = Field(43113, ge=1, le=65535)
+    isolate_runs: bool = Field(
+        True, description="ballbeam run: give each run a private group (random low 64 bits)"
+    )
     allow_off_host: bool = Field(
         False, description="permit a multicast group whose traffic leaves this host"
     )
@@ -187,6 +224,7 @@ class Config(_Section):
     observer: ObserverSection = ObserverSection()
     controller: ControllerSection = ControllerSection()
     plant: PlantSection = PlantSection()
+    sensors: SensorsSection = SensorsSection()
     run: RunSection = RunSection()
     bus: BusSection = BusSection()
     expect: dict[str, dict[str, float]] = Field(
@@ -312,4 +350,4 @@ def load_config(path: str | Path | None, overrides: Iterable[str] = ()) -> Confi
     data: dict[str, Any] = {} if path is None else _read_toml(Path(path))
     for assignment in overrides:
         data = _deep_merge(data, parse_override(assignment))
-    return config_from_mapping(data, str(path) if path is not None else "defaults")
+    return config_from_mapping(data, str(path) if path is not None else "config")

@@ -1,0 +1,205 @@
+"""The plant-emulator process: SRV02 physics behind the CAN frame contract.
+
+Real time: free-running at the sensor rate on absolute deadlines; a command takes effect
+when it arrives (the physics is advanced to that instant first), like a DAC update.
+Lock-step: one control period per valid command answering the latest sample; with no answer
+the sample is sent again, so a lost frame costs time, never determinism.
+Either way a watchdog zeroes the voltage when valid commands stop.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+
+import can
+import numpy as np
+
+from ballbeam.assembly import plant_parameters, sensor_periods_per_cycle
+from ballbeam.config import Config
+from ballbeam.core.plant import PlantPhysics, initial_noise, next_noise, read_sensors
+from ballbeam.errors import FrameError
+from ballbeam.runtime.frames import (
+    COMMAND_ID,
+    CounterCheck,
+    FrameContract,
+    VoltageCommand,
+    next_counter,
+)
+from ballbeam.runtime.signals import StopFlag
+from ballbeam.runtime.ticker import Ticker
+
+log = logging.getLogger("ballbeam.emulator")
+
+STATUS_WATCHDOG = 0x01
+STATUS_HELD = 0x02
+
+
+@dataclass
+class EmulatorCounters:
+    samples_sent: int = 0
+    resends: int = 0
+    commands_applied: int = 0
+    rejected: int = 0
+    own_or_foreign: int = 0
+    dropped_by_injection: int = 0
+    watchdog_trips: int = 0
+
+
+class PlantEmulator:
+    def __init__(self, config: Config, bus: can.BusABC, contract: FrameContract) -> None:
+        self.config = config
+        self.bus = bus
+        self.contract = contract
+        params = plant_parameters(config)
+        self.physics = PlantPhysics(params)
+        self.rng = np.random.default_rng(config.plant.seed)
+        # Fault injection draws from its own stream so it never perturbs the plant noise.
+        self.fault_rng = np.random.default_rng([config.plant.seed, 1])
+        self.state = config.initial.state()
+        self.noise_m = initial_noise(params, self.rng)
+        self.substeps = config.plant.physics_substeps
+        self.sensor_period_ns = 1_000_000_000 // config.plant.sensor_rate_hz
+        self.substep_ns = self.sensor_period_ns // self.substeps
+        self.sensor_periods_per_command = sensor_periods_per_cycle(config)
+        self.started = not config.plant.hold_until_enabled
+        self.voltage_v = 0.0
+        self.counter = 0
+        self.command_check = CounterCheck()
+        self.counters = EmulatorCounters()
+        self.watchdog_ns = int(config.plant.watchdog_ms * 1e6)
+        self.last_command_ns: int | None = None
+        self.watchdog_zeroed = False
+
+    # -- frames -------------------------------------------------------------------------------
+    def _send(self, arbitration_id: int, data: bytes) -> None:
+        self.bus.send(can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=False))
+
+    def _send_sample(self) -> None:
+        """Truth first, then the sensor frame, all with this sample's counter."""
+        if self.config.plant.sensor_loss and self.fault_rng.random() < self.config.plant.sensor_loss:
+            self.counters.dropped_by_injection += 1
+            truth_only = True
+        else:
+            truth_only = False
+        theta, theta_rate, velocity, position = (float(v) for v in self.state)
+        self._send(*self.contract.encode_truth_angle(self.counter, theta, theta_rate))
+        self._send(*self.contract.encode_truth_ball(self.counter, position, velocity))
+        if truth_only:
+            return
+        reading = read_sensors(self.physics.params, self.state, self.noise_m)
+        status = (STATUS_WATCHDOG if self.watchdog_zeroed else 0) | (
+            0 if self.started else STATUS_HELD
+        )
+        self._send(
+            *self.contract.encode_sensor(
+                self.counter, reading.angle_counts, reading.position_counts, status
+            )
+        )
+        self.counters.samples_sent += 1
+
+    def _accept_command(self, message: can.Message) -> VoltageCommand | None:
+        """A valid, fresh command frame, or None (counted)."""
+        if message.arbitration_id != COMMAND_ID:
+            self.counters.own_or_foreign += 1
+            return None
+        try:
+            command = self.contract.decode(message.arbitration_id, bytes(message.data))
+        except FrameError:
+            self.counters.rejected += 1
+            return None
+        assert isinstance(command, VoltageCommand)
+        if self.config.plant.command_loss and self.fault_rng.random() < self.config.plant.command_loss:
+            self.counters.dropped_by_injection += 1
+            return None
+        if self.command_check.classify(command.counter) != "ok":
+            self.counters.rejected += 1
+            return None
+        return command
+
+    def _apply(self, command: VoltageCommand, now_ns: int) -> None:
+        self.last_command_ns = now_ns
+        self.watchdog_zeroed = False
+        self.voltage_v = command.voltage_v if command.enable else 0.0
+        if command.enable:
+            self.started = True
+        self.counters.commands_applied += 1
+
+    def _check_watchdog(self, now_ns: int) -> None:
+        if self.last_command_ns is None or self.watchdog_zeroed:
+            return
+        if now_ns - self.last_command_ns > self.watchdog_ns:
+            self.voltage_v = 0.0
+            self.watchdog_zeroed = True
+            self.counters.watchdog_trips += 1
+            log.warning("watchdog: no valid command for %.1f ms, voltage zeroed",
+                        (now_ns - self.last_command_ns) / 1e6)
+
+    def _advance(self, substeps: int) -> None:
+        if self.started and substeps > 0:
+            self.state = self.physics.advance(self.state, self.voltage_v, substeps)
+
+    # -- modes --------------------------------------------------------------------------------
+    def run_lockstep(self, stop: StopFlag) -> None:
+        resend_s = self.config.plant.lockstep_resend_ms * 1e-3
+        self._send_sample()
+        last_sent = time.monotonic()
+        while not stop.is_set():
+            message = self.bus.recv(timeout=resend_s)
+            now_ns = time.monotonic_ns()
+            self._check_watchdog(now_ns)
+            if message is None or (command := self._accept_command(message)) is None:
+                if time.monotonic() - last_sent >= resend_s:
+                    self._resend()
+                    last_sent = time.monotonic()
+                continue
+            if command.sensor_counter != self.counter:
+                self.counters.rejected += 1  # answers an older sample: stale
+                continue
+            self._apply(command, now_ns)
+            for _ in range(self.sensor_periods_per_command):
+                self._advance(self.substeps)
+                self.noise_m = next_noise(self.physics.params, self.noise_m, self.rng)
+            self.counter = next_counter(self.counter)
+            self._send_sample()
+            last_sent = time.monotonic()
+
+    def _resend(self) -> None:
+        self.counters.resends += 1
+        # Same sample, same counters: the daemon answers a repeat with its cached command.
+        self._send_sample()
+
+    def run_realtime(self, stop: StopFlag) -> None:
+        ticker = Ticker(self.sensor_period_ns, spin_ns=self.config.controller.spin_us * 1000)
+        physics_ns = ticker.origin_ns
+        tick = ticker.wait()
+        while not stop.is_set():
+            # Advance to the deadline, then sample: the sensor reads the state at t_k.
+            due = (tick.deadline_ns - physics_ns) // self.substep_ns
+            self._advance(due)
+            physics_ns += due * self.substep_ns
+            self.noise_m = next_noise(self.physics.params, self.noise_m, self.rng)
+            self._send_sample()
+            self.counter = next_counter(self.counter)
+            next_deadline_ns = tick.deadline_ns + self.sensor_period_ns
+            # Listen until just before the next deadline, applying commands as they arrive.
+            while (remaining_ns := next_deadline_ns - time.monotonic_ns()) > ticker.spin_ns:
+                message = self.bus.recv(timeout=(remaining_ns - ticker.spin_ns) * 1e-9)
+                if message is None:
+                    break
+                command = self._accept_command(message)
+                if command is None:
+                    continue
+                now_ns = time.monotonic_ns()
+                due = min((now_ns - physics_ns) // self.substep_ns,
+                          (next_deadline_ns - physics_ns) // self.substep_ns)
+                self._advance(due)
+                physics_ns += due * self.substep_ns
+                self._apply(command, now_ns)
+            self._check_watchdog(time.monotonic_ns())
+            tick = ticker.wait()
+
+    def stop(self) -> None:
+        """Leave the plant safe: zero volts."""
+        self.voltage_v = 0.0

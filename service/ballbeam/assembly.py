@@ -1,0 +1,150 @@
+"""Builds the pure core's objects from a validated :class:`~ballbeam.config.Config`.
+
+This is the only place that knows both the config layout and the core's signatures.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ballbeam.config import Config
+from ballbeam.core.control import ControllerDesign
+from ballbeam.core.metrics import RunMetrics, compute_metrics
+from ballbeam.core.observer import design_observer
+from ballbeam.core.planning.bang_bang import plan_bang_bang
+from ballbeam.core.planning.rate_limited import plan_rate_limited
+from ballbeam.core.planning.time_optimal import plan_time_optimal
+from ballbeam.core.plans import Plan
+from ballbeam.core.plant import ADC_COUNT_LIMIT, PlantParameters, PlantPhysics
+from ballbeam.core.simulate import SimulationTrace, simulate_closed_loop
+from ballbeam.core.tracker import synthesize_discrete
+
+DEFAULT_POSITION_NOISE_M = 2e-4
+
+
+def make_plan(config: Config) -> Plan:
+    constants = config.constants()
+    start = config.initial.state()
+    theta_max_rad = config.limits.theta_rad
+    kind = config.plan.kind
+    if kind == "bang_bang":
+        return plan_bang_bang(constants, theta_max_rad, start)
+    if kind == "rate_limited":
+        return plan_rate_limited(
+            constants, theta_max_rad, config.plan.servo_rate_limit_rad_s, start
+        )
+    return plan_time_optimal(
+        config.design_model(),
+        start,
+        voltage_limit_v=config.limits.voltage_v - config.plan.voltage_margin_v,
+        theta_max_rad=theta_max_rad,
+        step_s=config.plan.step_s or config.controller.period_s,
+    )
+
+
+def controller_design(config: Config, plan: Plan | None = None) -> ControllerDesign:
+    plan = plan if plan is not None else make_plan(config)
+    model = config.design_model()
+    period_s = config.controller.period_s
+    tracker_cfg = config.tracker
+    tracker = synthesize_discrete(
+        model,
+        plan,
+        Q=np.diag(tracker_cfg.q),
+        R=np.array([[tracker_cfg.r]]),
+        period_s=period_s,
+        horizon_s=tracker_cfg.horizon_s,
+        terminal=tracker_cfg.terminal,
+        input_reference=tracker_cfg.input_reference,
+    )
+    sensors = config.sensors
+    constants = config.constants()
+    encoder_step_rad = sensors.encoder_step_rad
+    adc_step_m = sensors.adc_step_m(constants.beam_length_m)
+    observer_cfg = config.observer
+    observer = design_observer(
+        model.discretize(period_s),
+        input_noise_v=observer_cfg.input_noise_v,
+        ball_noise_m_s2=observer_cfg.ball_noise_m_s2,
+        angle_noise_rad=observer_cfg.angle_noise_rad or encoder_step_rad / math.sqrt(12.0),
+        position_noise_m=observer_cfg.position_noise_m
+        or math.hypot(DEFAULT_POSITION_NOISE_M, adc_step_m / math.sqrt(12.0)),
+    )
+    n_reference = tracker.K.shape[0]
+    samples = plan.sample(np.arange(n_reference) * period_s)
+    return ControllerDesign(
+        plan=plan,
+        tracker=tracker,
+        observer=observer,
+        reference_states=samples.states,
+        reference_input_v=samples.input_v,
+        voltage_limit_v=config.limits.voltage_v,
+        angle_per_count=constants.angle_sensor_gain * encoder_step_rad,
+        position_per_count=constants.position_sensor_gain * adc_step_m,
+    )
+
+
+def plant_parameters(config: Config) -> PlantParameters:
+    plant = config.plant
+    constants = config.constants()
+    true_model = config.true_model()
+    sensor_period_s = 1.0 / plant.sensor_rate_hz
+    return PlantParameters(
+        alpha=float(true_model.B[1, 0]),
+        alpha_beta=float(-true_model.A[1, 1]),
+        gamma=float(true_model.A[2, 0]),
+        ball_gain_scale=plant.ball_gain_scale,
+        saturation_v=plant.saturation_v,
+        deadzone_v=plant.deadzone_v,
+        nonlinear_ball=plant.nonlinear_ball,
+        gravity_m_per_s2=constants.gravity_m_per_s2,
+        arm_to_beam_ratio=constants.arm_radius_m / constants.beam_length_m,
+        beam_half_length_m=constants.beam_length_m / 2.0,
+        hard_stop_rad=math.radians(plant.hard_stop_deg),
+        substep_s=sensor_period_s / plant.physics_substeps,
+        encoder_step_rad=config.sensors.encoder_step_rad,
+        adc_step_m=config.sensors.adc_step_m(constants.beam_length_m),
+        adc_count_limit=ADC_COUNT_LIMIT,
+        position_noise_m=plant.position_noise_m,
+        noise_pole=math.exp(-2.0 * math.pi * plant.noise_bandwidth_hz * sensor_period_s),
+    )
+
+
+def sensor_periods_per_cycle(config: Config) -> int:
+    return config.plant.sensor_rate_hz // config.controller.rate_hz
+
+
+def run_cycles(config: Config) -> int:
+    return round(config.run.duration_s * config.controller.rate_hz)
+
+
+@dataclass(frozen=True)
+class OfflineRun:
+    design: ControllerDesign
+    trace: SimulationTrace
+    metrics: RunMetrics
+
+
+def run_offline(config: Config) -> OfflineRun:
+    design = controller_design(config)
+    physics = PlantPhysics(plant_parameters(config))
+    trace = simulate_closed_loop(
+        design,
+        physics,
+        config.initial.state(),
+        n_cycles=run_cycles(config),
+        sensor_periods_per_cycle=sensor_periods_per_cycle(config),
+        substeps_per_sensor_period=config.plant.physics_substeps,
+        rng=np.random.default_rng(config.plant.seed),
+    )
+    metrics = compute_metrics(
+        trace.time_s,
+        trace.true_states,
+        trace.voltage_v,
+        trace.reference_states[:, 3],
+        config.limits.theta_rad,
+    )
+    return OfflineRun(design=design, trace=trace, metrics=metrics)

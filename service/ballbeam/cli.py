@@ -1,0 +1,146 @@
+"""``ballbeam``: the command line. Every subcommand takes a config and ``--set`` overrides.
+
+Errors a user can cause print one line and exit 2; nothing prints a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from ballbeam.config import Config, load_config
+from ballbeam.errors import BallbeamError
+
+EXIT_USAGE = 2
+
+
+def _add_config_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "config",
+        nargs="?",
+        help="TOML config file (default: the paper's set-up, as in configs/paper.toml)",
+    )
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a config key, e.g. --set plan.kind=rate_limited (repeatable)",
+    )
+
+
+def _config(args: argparse.Namespace) -> Config:
+    return load_config(args.config, args.overrides)
+
+
+def _json_ready(value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {key: _json_ready(item) for key, item in value.items()}
+    return value
+
+
+def print_json(payload: dict[str, Any]) -> None:
+    print(json.dumps(_json_ready(payload), indent=2, sort_keys=True))
+
+
+def _format_value(value: Any) -> str:
+    if value is None:
+        return "never"
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    return str(value)
+
+
+def print_table(title: str, rows: dict[str, Any]) -> None:
+    print(title)
+    width = max(len(key) for key in rows)
+    for key, value in rows.items():
+        print(f"  {key:<{width}}  {_format_value(value)}")
+
+
+def command_plan(args: argparse.Namespace) -> int:
+    from ballbeam.assembly import make_plan
+
+    config = _config(args)
+    plan = make_plan(config)
+    summary: dict[str, Any] = {"kind": plan.kind, "duration_s": plan.duration_s}
+    summary.update(getattr(plan, "summary", dict)())
+    if args.json:
+        print_json(summary)
+    else:
+        print_table(f"plan ({plan.kind})", summary)
+    return 0
+
+
+def command_simulate(args: argparse.Namespace) -> int:
+    from ballbeam.assembly import run_offline
+    from ballbeam.plotting import plot_run
+
+    config = _config(args)
+    result = run_offline(config)
+    metrics = result.metrics.as_dict()
+    if args.plot:
+        trace = result.trace
+        plot_run(
+            args.plot,
+            trace.time_s,
+            trace.true_states,
+            trace.reference_states,
+            trace.voltage_v,
+            config.limits.theta_rad,
+            title=f"offline closed loop, {config.plan.kind} path",
+        )
+    if args.json:
+        print_json({"plan_kind": config.plan.kind, "plan_duration_s": result.design.plan.duration_s,
+                    **metrics})
+    else:
+        print_table(
+            f"offline simulation ({config.plan.kind} path, "
+            f"{result.design.plan.duration_s:.4f} s plan)",
+            metrics,
+        )
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="ballbeam",
+        description="Optimal tracking controller bench for the SRV02 ball-and-beam.",
+    )
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    plan = commands.add_parser("plan", help="plan the path and print its duration and summary")
+    _add_config_arguments(plan)
+    plan.add_argument("--json", action="store_true", help="print one JSON object")
+    plan.set_defaults(handler=command_plan)
+
+    simulate = commands.add_parser("simulate", help="run the offline closed loop (no bus)")
+    _add_config_arguments(simulate)
+    simulate.add_argument("--json", action="store_true", help="print one JSON object")
+    simulate.add_argument("--plot", metavar="PNG", help="write a paper-style figure")
+    simulate.set_defaults(handler=command_simulate)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    handler: Callable[[argparse.Namespace], int] = args.handler
+    try:
+        return handler(args)
+    except BallbeamError as error:
+        print(f"ballbeam: error: {error}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

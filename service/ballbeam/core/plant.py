@@ -1,0 +1,147 @@
+"""The SRV02 ball-and-beam as the emulator and the offline simulation run it.
+
+Beyond the design model: ±V saturation then a dead zone before the motor (paper figure 2),
+the true plant's own gains (model mismatch), optionally the nonlinear ball (beam geometry,
+ball stopping at the beam ends, servo hard stops), and sensors that report raw encoder and
+ADC counts with band-limited noise on the ball track. Pure: the caller owns state and RNG.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ballbeam.core.model import BALL_POSITION, BALL_VELOCITY, THETA, THETA_RATE, LinearModel
+
+ADC_COUNT_LIMIT = 32767  # signed 16-bit frame field
+
+
+@dataclass(frozen=True)
+class PlantParameters:
+    """Everything the physics needs, SI units."""
+
+    alpha: float  # true volts → servo acceleration [rad/s² per V]
+    alpha_beta: float  # true back-EMF damping [1/s]
+    gamma: float  # true servo angle → ball acceleration, linear ball [m/s² per rad]
+    ball_gain_scale: float  # true / model ball gain, applied to the nonlinear ball too
+    saturation_v: float
+    deadzone_v: float
+    nonlinear_ball: bool
+    gravity_m_per_s2: float
+    arm_to_beam_ratio: float  # r / L
+    beam_half_length_m: float
+    hard_stop_rad: float
+    substep_s: float
+    encoder_step_rad: float
+    adc_step_m: float
+    adc_count_limit: int
+    position_noise_m: float
+    noise_pole: float  # AR(1) pole of the band-limited sensor noise at the sensor rate
+
+
+@dataclass(frozen=True)
+class SensorReading:
+    """What the sensor frame carries: raw integer counts."""
+
+    angle_counts: int
+    position_counts: int
+
+
+def drive_voltage(params: PlantParameters, command_v: float) -> float:
+    """Voltage reaching the motor: saturate, then remove the dead zone (paper figure 2)."""
+    saturated = min(max(command_v, -params.saturation_v), params.saturation_v)
+    if abs(saturated) <= params.deadzone_v:
+        return 0.0
+    return saturated - math.copysign(params.deadzone_v, saturated)
+
+
+class PlantPhysics:
+    """Integrates the plant in fixed substeps. Linear ball: exact ZOH per substep;
+    nonlinear ball: RK4 per substep with end stops and hard stops applied between steps."""
+
+    def __init__(self, params: PlantParameters) -> None:
+        self.params = params
+        true_model = LinearModel(
+            A=np.array(
+                [
+                    [0.0, 1.0, 0.0, 0.0],
+                    [0.0, -params.alpha_beta, 0.0, 0.0],
+                    [params.gamma, 0.0, 0.0, 0.0],
+                    [0.0, 0.0, 1.0, 0.0],
+                ]
+            ),
+            B=np.array([[0.0], [params.alpha], [0.0], [0.0]]),
+            C=np.zeros((2, 4)),
+        )
+        step = true_model.discretize(params.substep_s)
+        self._Ad = step.Ad
+        self._bd = step.Bd[:, 0]
+
+    def advance(self, state: np.ndarray, command_v: float, substeps: int) -> np.ndarray:
+        """State after ``substeps`` substeps holding ``command_v``."""
+        drive_v = drive_voltage(self.params, command_v)
+        if not self.params.nonlinear_ball:
+            for _ in range(substeps):
+                state = self._Ad @ state + self._bd * drive_v
+            return state
+        for _ in range(substeps):
+            state = self._rk4(state, drive_v)
+            state = self._apply_stops(state)
+        return state
+
+    def _derivative(self, state: np.ndarray, drive_v: float) -> np.ndarray:
+        p = self.params
+        theta, theta_rate, ball_velocity, ball_position = state
+        theta_accel = p.alpha * drive_v - p.alpha_beta * theta_rate
+        sin_phi = p.arm_to_beam_ratio * math.sin(theta)
+        cos_phi = math.sqrt(1.0 - sin_phi * sin_phi)
+        phi_rate = p.arm_to_beam_ratio * math.cos(theta) * theta_rate / cos_phi
+        # Rolling solid ball: ẍ = (5/7)(x·φ̇² − g·sin φ); γ of the linear model is its slope.
+        ball_accel = (
+            p.ball_gain_scale
+            * (5.0 / 7.0)
+            * (ball_position * phi_rate**2 - p.gravity_m_per_s2 * sin_phi)
+        )
+        return np.array([theta_rate, theta_accel, ball_accel, ball_velocity])
+
+    def _rk4(self, state: np.ndarray, drive_v: float) -> np.ndarray:
+        h = self.params.substep_s
+        k1 = self._derivative(state, drive_v)
+        k2 = self._derivative(state + 0.5 * h * k1, drive_v)
+        k3 = self._derivative(state + 0.5 * h * k2, drive_v)
+        k4 = self._derivative(state + h * k3, drive_v)
+        result: np.ndarray = state + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+        return result
+
+    def _apply_stops(self, state: np.ndarray) -> np.ndarray:
+        p = self.params
+        state = state.copy()
+        if abs(state[THETA]) > p.hard_stop_rad:
+            state[THETA] = math.copysign(p.hard_stop_rad, state[THETA])
+            if state[THETA_RATE] * state[THETA] > 0:
+                state[THETA_RATE] = 0.0
+        if abs(state[BALL_POSITION]) > p.beam_half_length_m:
+            state[BALL_POSITION] = math.copysign(p.beam_half_length_m, state[BALL_POSITION])
+            if state[BALL_VELOCITY] * state[BALL_POSITION] > 0:
+                state[BALL_VELOCITY] = 0.0
+        return state
+
+
+def next_noise(params: PlantParameters, noise_m: float, rng: np.random.Generator) -> float:
+    """One sensor-period step of first-order band-limited noise with stationary std σ."""
+    a = params.noise_pole
+    return a * noise_m + math.sqrt(1.0 - a * a) * params.position_noise_m * rng.standard_normal()
+
+
+def read_sensors(params: PlantParameters, state: np.ndarray, noise_m: float) -> SensorReading:
+    """Encoder counts of θ and ADC counts of the (noisy) ball position, clipped to the ADC."""
+    angle_counts = round(float(state[THETA]) / params.encoder_step_rad)
+    position_counts = round((float(state[BALL_POSITION]) + noise_m) / params.adc_step_m)
+    limit = params.adc_count_limit
+    return SensorReading(angle_counts, max(-limit - 1, min(limit, position_counts)))
+
+
+def initial_noise(params: PlantParameters, rng: np.random.Generator) -> float:
+    return float(params.position_noise_m * rng.standard_normal())

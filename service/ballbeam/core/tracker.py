@@ -1,0 +1,498 @@
+"""Time-varying linear-quadratic tracker (paper, sections 3–4), continuous and sampled-data.
+
+Cost, with ``u_ref = u_d`` (``input_reference="feedforward"``) or ``u_ref = 0`` (``"zero"``,
+the paper's ``uᵀRu``)::
+
+    J = ∫₀ᵀ (x − x_d)ᵀQ(x − x_d) + (u − u_ref)ᵀR(u − u_ref) dt + (x(T) − x_d(T))ᵀ S_T (x(T) − x_d(T))
+
+with ``S_T`` the stationary Riccati solution (``terminal="stationary"``: the tracker hands over
+smoothly to the constant LQR used after the horizon) or 0 (``"zero"``: the paper's ``S(T) = 0``,
+whose gains collapse near ``T``).
+
+Continuous solution. Writing the value function as ``V(t, x) = xᵀS x − 2vᵀx + c`` and minimising
+the Hamiltonian over ``u = u_ref + w`` gives ``w = −R⁻¹Bᵀ(S x − v)``, i.e.::
+
+    u  = u_ref − K x + R⁻¹Bᵀ v,            K = R⁻¹BᵀS
+    −Ṡ = AᵀS + S A − S B R⁻¹BᵀS + Q,        S(T) = S_T
+    −v̇ = (A − B K)ᵀ v + Q x_d − S B u_ref,  v(T) = S_T x_d(T)
+
+(the ``x``-linear terms of the HJB equation give the ``v`` equation; ``u_ref`` enters through
+``2(S x − v)ᵀB u_ref``). With ``u_ref = 0`` and ``S_T = 0`` these are exactly the paper's (5)–(7).
+For a reference that obeys the model, ``ẋ_d = A x_d + B u_d``, and ``u_ref = u_d``, the solution
+is ``v = S x_d``, so ``u = u_d − K (x − x_d)``.
+
+Sampled-data solution (what the controller runs at period ``h``, input held over each period).
+The plant is discretised exactly (zero-order hold) and so is the cost: between samples the
+state is ``x(kh + τ) = e^{Aτ} x_k + Γ(τ) u_k`` and the reference is taken as the plan's own
+held-input motion ``x_d(kh + τ) ≈ e^{Aτ} r_k + Γ(τ) ū_k`` (exact for a plan that is itself
+zero-order-hold consistent, second order in ``h`` otherwise), ``r_k = x_d(kh)``,
+``ū_k = u_d(kh)``. The integral of the stage cost over one period is then the quadratic form
+of ``(x_k − r_k, u_k − ū_k)`` with the Van Loan matrices
+
+    [[Qd, Nd], [Ndᵀ, Rd − R h]] = ∫₀ʰ [e^{Aτ} Γ(τ)]ᵀ Q [e^{Aτ} Γ(τ)] dτ,
+
+read off ``expm([[−Fᵀ, diag(Q, 0)], [0, F]] h)`` with ``F = [[A, B], [0, 0]]`` (Van Loan, 1978),
+plus the input term ``(u_k − u_ref,k)ᵀ R h (u_k − u_ref,k)``. With ``V_k(x) = xᵀS_k x − 2v_kᵀx``
+and stage linear terms ``a_k = Qd r_k + Nd ū_k``, ``b_k = Ndᵀ r_k + (Rd − R h) ū_k + R h u_ref,k``
+the backward recursion is
+
+    G_k = Rd + BdᵀS_{k+1}Bd,        K_k = G_k⁻¹ (BdᵀS_{k+1}Ad + Ndᵀ)
+    S_k = Qd + AdᵀS_{k+1}Ad − K_kᵀ G_k K_k
+    v_k = a_k − K_kᵀ b_k + (Ad − Bd K_k)ᵀ v_{k+1},   offset_k = G_k⁻¹ (b_k + Bdᵀv_{k+1})
+    u_k = −K_k x_k + offset_k,      S_N = S_T, v_N = S_T r_N.
+
+It is evaluated without a Python loop over the horizon (8000 steps at 1 kHz must synthesise in
+milliseconds): with ``S_T = P`` (the DARE solution) ``S_k = P`` for all k and the ``v``
+recursion is linear time-invariant, solved by a Schur decomposition and first-order filters;
+with ``S_T = 0`` the deviation from the stationary problem has a closed form (see
+:func:`_finite_horizon_deviation`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+import scipy.integrate
+import scipy.linalg
+import scipy.signal
+
+from ballbeam.core.model import LinearModel
+from ballbeam.core.plans import Plan
+from ballbeam.errors import ConfigError
+
+Terminal = Literal["stationary", "zero"]
+InputReference = Literal["feedforward", "zero"]
+
+_POWER_BLOCK = 64  # Φ^j is built as Φ^(64 i) Φ^r: two short loops and one batched product
+
+
+@dataclass(frozen=True)
+class SampledCost:
+    """The continuous cost integrated exactly over one held-input period ``h`` (Van Loan).
+
+    Per period the cost is ``[δx; δu]ᵀ [[Qd, Nd], [Ndᵀ, Rd − Rh]] [δx; δu] + (u − u_ref)ᵀ Rh
+    (u − u_ref)`` with ``δx = x_k − r_k``, ``δu = u_k − ū_k``. Qd (4, 4), Nd (4, 1),
+    Rd (1, 1) (state part plus ``Rh``), Rh (1, 1) = R·h.
+    """
+
+    Qd: np.ndarray
+    Nd: np.ndarray
+    Rd: np.ndarray
+    Rh: np.ndarray
+
+
+@dataclass(frozen=True)
+class ContinuousTracker:
+    """The continuous solution on a time grid: u(t) = −K(t) x + offset_v(t).
+
+    time_s (N,), S (N, 4, 4), v (N, 4), K (N, 1, 4), u_ref (N,), offset_v (N,) = u_ref + R⁻¹Bᵀv.
+    """
+
+    time_s: np.ndarray
+    S: np.ndarray
+    v: np.ndarray
+    K: np.ndarray
+    u_ref: np.ndarray
+    offset_v: np.ndarray
+
+
+@dataclass(frozen=True)
+class DiscreteTracker:
+    """Gain schedule for the sampled-data tracker: ``u_k = −K[k] x_k + offset_v[k]`` for
+    ``k < N``, then ``u = −K_final x`` (the stationary LQR, regulating to the origin).
+
+    K (N, 1, 4), offset_v (N,), K_final (1, 4); S (N + 1, 4, 4) and v (N + 1, 4) are the value
+    function ``V_k(x) = xᵀS_k x − 2v_kᵀx`` (k = N is the terminal weight).
+    """
+
+    period_s: float
+    K: np.ndarray
+    offset_v: np.ndarray
+    K_final: np.ndarray
+    S: np.ndarray
+    v: np.ndarray
+
+    @property
+    def n_steps(self) -> int:
+        return int(self.offset_v.shape[0])
+
+
+def sampled_cost(model: LinearModel, Q: np.ndarray, R: np.ndarray, period_s: float) -> SampledCost:
+    """Van Loan's exact integral of the stage cost over one zero-order-hold period."""
+    if not period_s > 0.0:
+        raise ConfigError(f"sampling period must be positive, got {period_s} s")
+    n, m = model.B.shape
+    F = np.zeros((n + m, n + m))
+    F[:n, :n] = model.A
+    F[:n, n:] = model.B
+    block = np.zeros((2 * (n + m), 2 * (n + m)))
+    block[: n + m, : n + m] = -F.T
+    block[:n, n + m : 2 * n + m] = Q
+    block[n + m :, n + m :] = F
+    transition = scipy.linalg.expm(block * period_s)
+    # expm = [[e^{−Fᵀh}, e^{−Fᵀh}·W], [0, e^{Fh}]] with W the wanted integral.
+    W = transition[n + m :, n + m :].T @ transition[: n + m, n + m :]
+    W = 0.5 * (W + W.T)
+    Rh = np.asarray(R, dtype=float).reshape(m, m) * period_s
+    return SampledCost(Qd=W[:n, :n], Nd=W[:n, n:], Rd=W[n:, n:] + Rh, Rh=Rh)
+
+
+def _check_weights(Q: np.ndarray, R: np.ndarray, n: int, m: int) -> tuple[np.ndarray, np.ndarray]:
+    Q = np.asarray(Q, dtype=float)
+    R = np.atleast_2d(np.asarray(R, dtype=float))
+    if Q.shape != (n, n) or R.shape != (m, m):
+        raise ConfigError(f"Q must be ({n}, {n}) and R ({m}, {m}), got {Q.shape} and {R.shape}")
+    if not np.allclose(Q, Q.T) or np.linalg.eigvalsh(Q).min() < -1e-12 * max(1.0, abs(Q).max()):
+        raise ConfigError("Q must be symmetric positive semi-definite")
+    if not np.allclose(R, R.T) or np.linalg.eigvalsh(R).min() <= 0.0:
+        raise ConfigError("R must be symmetric positive definite")
+    return Q, R
+
+
+def _check_choices(terminal: str, input_reference: str) -> None:
+    if terminal not in ("stationary", "zero"):
+        raise ConfigError(f"terminal must be 'stationary' or 'zero', got {terminal!r}")
+    if input_reference not in ("feedforward", "zero"):
+        raise ConfigError(f"input_reference must be 'feedforward' or 'zero', got {input_reference!r}")
+
+
+# ----------------------------------------------------------------------------------------------
+# Continuous time (reference solution; the controller runs the sampled-data one)
+
+
+def continuous_tracker(
+    model: LinearModel,
+    plan: Plan,
+    *,
+    Q: np.ndarray,
+    R: np.ndarray,
+    horizon_s: float,
+    terminal: Terminal = "stationary",
+    input_reference: InputReference = "feedforward",
+    time_s: np.ndarray | None = None,
+    rtol: float = 1e-10,
+    atol: float = 1e-10,
+) -> ContinuousTracker:
+    """Integrate the Riccati and feedforward equations backward from ``horizon_s`` to 0.
+
+    ``time_s`` (N,) in [0, horizon_s] is the output grid (default: every 1 ms). The plan is
+    sampled wherever the integrator needs it.
+    """
+    n, m = model.B.shape
+    Q, R = _check_weights(Q, R, n, m)
+    _check_choices(terminal, input_reference)
+    if not horizon_s > 0.0:
+        raise ConfigError(f"horizon must be positive, got {horizon_s} s")
+    if time_s is None:
+        time_s = np.linspace(0.0, horizon_s, max(2, round(horizon_s / 1e-3) + 1))
+    time_s = np.asarray(time_s, dtype=float)
+    if time_s.ndim != 1 or np.any(np.diff(time_s) <= 0) or time_s[0] < 0 or time_s[-1] > horizon_s:
+        raise ConfigError("time_s must increase strictly within [0, horizon_s]")
+    A, B = model.A, model.B
+    R_inv_Bt = np.linalg.solve(R, B.T)  # (m, n)
+    BR_inv_Bt = B @ R_inv_Bt
+    use_feedforward = input_reference == "feedforward"
+
+    def reference(t: float) -> tuple[np.ndarray, np.ndarray]:
+        samples = plan.sample(np.array([t]))
+        u_ref = samples.input_v[:1] if use_feedforward else np.zeros(m)
+        return samples.states[0], u_ref
+
+    x_T, u_T = reference(horizon_s)
+    if terminal == "stationary":
+        S_T = scipy.linalg.solve_continuous_are(A, B, Q, R)
+        S_T = 0.5 * (S_T + S_T.T)
+        closed_T = (A - BR_inv_Bt @ S_T).T
+        S_T_B = S_T @ B
+
+        # S stays at the stationary solution: only v moves.
+        def rhs(t: float, y: np.ndarray) -> np.ndarray:
+            x_d, u_ref = reference(t)
+            result: np.ndarray = -(closed_T @ y + Q @ x_d - S_T_B @ u_ref)
+            return result
+
+        y_T = S_T @ x_T
+    else:
+        S_T = np.zeros((n, n))
+
+        def rhs(t: float, y: np.ndarray) -> np.ndarray:
+            S = y[: n * n].reshape(n, n)
+            S = 0.5 * (S + S.T)
+            v = y[n * n :]
+            x_d, u_ref = reference(t)
+            SA = S @ A
+            S_dot = -(SA + SA.T - S @ BR_inv_Bt @ S + Q)
+            v_dot = -((A - BR_inv_Bt @ S).T @ v + Q @ x_d - S @ B @ u_ref)
+            return np.concatenate([S_dot.ravel(), v_dot])
+
+        y_T = np.concatenate([S_T.ravel(), S_T @ x_T])
+    solution = scipy.integrate.solve_ivp(
+        rhs,
+        (horizon_s, float(time_s[0])),
+        y_T,
+        method="DOP853",
+        t_eval=time_s[::-1],
+        rtol=rtol,
+        atol=atol,
+    )
+    if not solution.success:
+        raise ConfigError(f"continuous Riccati integration failed: {solution.message}")
+    y = solution.y[:, ::-1].T  # (N, len(y)) in increasing time
+    N = time_s.shape[0]
+    if terminal == "stationary":
+        S_all = np.broadcast_to(S_T, (N, n, n)).copy()
+        v_all = y
+    else:
+        S_all = y[:, : n * n].reshape(N, n, n)
+        S_all = 0.5 * (S_all + S_all.transpose(0, 2, 1))
+        v_all = y[:, n * n :]
+    K_all = np.einsum("ij,kjl->kil", R_inv_Bt, S_all)
+    samples = plan.sample(time_s)
+    u_ref_all = samples.input_v.astype(float) if use_feedforward else np.zeros(N)
+    offset = u_ref_all + v_all @ R_inv_Bt[0]
+    return ContinuousTracker(
+        time_s=_frozen(time_s),
+        S=_frozen(S_all),
+        v=_frozen(v_all),
+        K=_frozen(K_all),
+        u_ref=_frozen(u_ref_all),
+        offset_v=_frozen(offset),
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# Sampled data (what the controller runs)
+
+
+def stationary_gain(
+    model: LinearModel, Q: np.ndarray, R: np.ndarray, period_s: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The sampled-data LQR: ``K`` (1, 4) and the DARE solution ``P`` (4, 4)."""
+    n, m = model.B.shape
+    Q, R = _check_weights(Q, R, n, m)
+    discrete = model.discretize(period_s)
+    cost = sampled_cost(model, Q, R, period_s)
+    P = _dare(discrete.Ad, discrete.Bd, cost)
+    Bd = discrete.Bd
+    K = np.linalg.solve(cost.Rd + Bd.T @ P @ Bd, Bd.T @ P @ discrete.Ad + cost.Nd.T)
+    return K, P
+
+
+def _dare(Ad: np.ndarray, Bd: np.ndarray, cost: SampledCost) -> np.ndarray:
+    try:
+        P = scipy.linalg.solve_discrete_are(Ad, Bd, cost.Qd, cost.Rd, s=cost.Nd)
+    except (np.linalg.LinAlgError, ValueError) as error:
+        raise ConfigError(f"no stabilising stationary tracker for these weights: {error}") from error
+    result: np.ndarray = 0.5 * (P + P.T)
+    return result
+
+
+def discrete_tracker(
+    model: LinearModel,
+    reference_states: np.ndarray,
+    reference_input_v: np.ndarray,
+    *,
+    Q: np.ndarray,
+    R: np.ndarray,
+    period_s: float,
+    terminal: Terminal = "stationary",
+    input_reference: InputReference = "feedforward",
+) -> DiscreteTracker:
+    """Synthesise the sampled-data tracker from references at the sample instants.
+
+    reference_states (N + 1, 4): r_k = x_d(k h) for k = 0..N (r_N enters the terminal cost);
+    reference_input_v (N,): ū_k = u_d(k h).
+    """
+    n, m = model.B.shape
+    Q, R = _check_weights(Q, R, n, m)
+    _check_choices(terminal, input_reference)
+    r = np.asarray(reference_states, dtype=float)
+    u_bar = np.asarray(reference_input_v, dtype=float)
+    N = u_bar.shape[0]
+    if m != 1 or u_bar.ndim != 1 or N < 1 or r.shape != (N + 1, n):
+        raise ConfigError(
+            f"references must be states (N + 1, {n}) and inputs (N,) with N >= 1 for a "
+            f"single-input model, got {r.shape} and {u_bar.shape}"
+        )
+    discrete = model.discretize(period_s)
+    Ad, bd = discrete.Ad, discrete.Bd[:, 0]
+    cost = sampled_cost(model, Q, R, period_s)
+    nd = cost.Nd[:, 0]
+    rd, rh = float(cost.Rd[0, 0]), float(cost.Rh[0, 0])
+    P = _dare(Ad, discrete.Bd, cost)
+
+    # Stage linear terms a_k (N, 4) and b_k (N,).
+    u_ref = u_bar if input_reference == "feedforward" else np.zeros(N)
+    a = np.einsum("ij,kj->ki", cost.Qd, r[:N]) + np.multiply.outer(u_bar, nd)
+    b = r[:N] @ nd + (rd - rh) * u_bar + rh * u_ref
+
+    # The stationary problem (S_N = P): constant gain, LTI feedforward recursion.
+    Pb = P @ bd
+    G_P = rd + bd @ Pb
+    K_P = (Pb @ Ad + nd) / G_P
+    Phi = Ad - np.outer(bd, K_P)
+    v_P = _backward_lti(Phi.T, a - np.multiply.outer(b, K_P), P @ r[N])
+    if terminal == "stationary":
+        S = np.broadcast_to(P, (N + 1, n, n))
+        v = v_P
+    else:
+        S, v = _finite_horizon_deviation(Phi, bd, G_P, P, -P, v_P, b, r[N])
+
+    # Gains and offsets from S_{k+1}, v_{k+1}.
+    if terminal == "stationary":
+        G = np.full(N, G_P)
+        K = np.broadcast_to(K_P, (N, n))
+    else:
+        S_next_b = np.einsum("kij,j->ki", S[1:], bd)  # S_{k+1} Bd (symmetric S)
+        G = rd + S_next_b @ bd
+        K = (np.einsum("ki,ij->kj", S_next_b, Ad) + nd) / G[:, None]
+    offset = (b + v[1:] @ bd) / G
+    return DiscreteTracker(
+        period_s=float(period_s),
+        K=_frozen(np.ascontiguousarray(K).reshape(N, 1, n)),
+        offset_v=_frozen(offset),
+        K_final=_frozen(K_P.reshape(1, n)),
+        S=_frozen(S),
+        v=_frozen(v),
+    )
+
+
+def synthesize_discrete(
+    model: LinearModel,
+    plan: Plan,
+    *,
+    Q: np.ndarray,
+    R: np.ndarray,
+    period_s: float,
+    horizon_s: float,
+    terminal: Terminal = "stationary",
+    input_reference: InputReference = "feedforward",
+) -> DiscreteTracker:
+    """The controller's tracker for ``plan``: N = round(horizon_s / period_s) periods."""
+    if not period_s > 0.0:
+        raise ConfigError(f"sampling period must be positive, got {period_s} s")
+    N = round(horizon_s / period_s)
+    if N < 1:
+        raise ConfigError(f"tracker horizon {horizon_s} s is shorter than one period")
+    if N * period_s < plan.duration_s - 0.5 * period_s:
+        raise ConfigError(
+            f"tracker horizon {horizon_s} s ends before the plan ({plan.duration_s:.4f} s)"
+        )
+    samples = plan.sample(np.arange(N + 1) * period_s)
+    return discrete_tracker(
+        model,
+        samples.states,
+        samples.input_v[:N],
+        Q=Q,
+        R=R,
+        period_s=period_s,
+        terminal=terminal,
+        input_reference=input_reference,
+    )
+
+
+def tracker_input(tracker: DiscreteTracker, k: int, state_estimate: np.ndarray) -> float:
+    """The tracker's demand [V] at cycle ``k`` (unclamped); beyond the horizon ``−K_final x``."""
+    if k < 0:
+        raise ValueError(f"cycle index must be >= 0, got {k}")
+    if k < tracker.offset_v.shape[0]:
+        return float(tracker.offset_v[k] - tracker.K[k, 0] @ state_estimate)
+    return float(-(tracker.K_final[0] @ state_estimate))
+
+
+# ----------------------------------------------------------------------------------------------
+# Vectorised backward recursions
+
+
+def _backward_lti(Phi_T: np.ndarray, c: np.ndarray, v_end: np.ndarray) -> np.ndarray:
+    """``v_k = Φᵀ v_{k+1} + c_k`` for k = N−1..0 from ``v_N = v_end``. c (N, n) → v (N + 1, n).
+
+    In the complex Schur basis ``Φᵀ = U T Uᴴ`` (T upper triangular, U unitary, so no loss of
+    accuracy) the recursion decouples into scalar first-order filters solved from the last
+    coordinate up, each fed by the coordinates already solved.
+    """
+    N, n = c.shape
+    T, U = scipy.linalg.schur(Phi_T, output="complex")
+    # Real-by-complex products split in two: complex BLAS on (N, n) arrays may start threads.
+    drive_all = (c @ U.real - 1j * (c @ U.imag))[::-1]  # row i: Uᴴ c_{N−1−i}
+    z = np.empty((N + 1, n), dtype=complex)  # z[i] = Uᴴ v_{N−i}
+    z[0] = U.conj().T @ v_end
+    for p in range(n - 1, -1, -1):
+        drive = drive_all[:, p] + z[:-1, p + 1 :] @ T[p, p + 1 :]
+        pole = T[p, p]
+        z[1:, p] = scipy.signal.lfilter([1.0], [1.0, -pole], drive, zi=[pole * z[0, p]])[0]
+    v: np.ndarray = (z.real @ U.real.T - z.imag @ U.imag.T)[::-1]
+    return v
+
+
+def _matrix_powers(Phi: np.ndarray, count: int) -> np.ndarray:
+    """Φ^j for j = 0..count−1, shape (count, n, n)."""
+    n = Phi.shape[0]
+    low = np.empty((_POWER_BLOCK, n, n))
+    low[0] = np.eye(n)
+    for j in range(1, _POWER_BLOCK):
+        low[j] = Phi @ low[j - 1]
+    step = Phi @ low[-1]
+    high = np.empty((count // _POWER_BLOCK + 1, n, n))
+    high[0] = np.eye(n)
+    for i in range(1, high.shape[0]):
+        high[i] = step @ high[i - 1]
+    powers: np.ndarray = (high[:, None] @ low[None]).reshape(-1, n, n)[:count]
+    return powers
+
+
+def _finite_horizon_deviation(
+    Phi: np.ndarray,
+    bd: np.ndarray,
+    G_P: float,
+    P: np.ndarray,
+    Delta_N: np.ndarray,
+    v_P: np.ndarray,
+    b: np.ndarray,
+    r_N: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """S_k and v_k for a terminal weight ``S_N = P + Delta_N``, in closed form.
+
+    Relative to the stationary problem's value ``V^P_k``, every stage satisfies
+    ``ℓ(x, u) + V^P_{k+1}(Ad x + Bd u) = V^P_k(x) + G_P (u − u^P_k(x))²``, so the remaining
+    problem is: minimise ``Σ G_P w_i² + (x_N − r_N)ᵀΔ_N(x_N − r_N)`` subject to
+    ``x_{i+1} = Φ x_i + Bd (f^P_i + w_i)``. Its terminal state from ``x_k`` is
+    ``Φ^j x_k + d_k + δ`` (j = N − k, ``d_k`` the drift of the stationary offsets ``f^P``),
+    where a shift δ costs ``δᵀW_j⁻¹δ`` with ``W_j = Σ_{p<j} Φ^p Bd Bdᵀ Φ^pᵀ / G_P``. Minimising
+    over δ leaves ``(Φ^j x_k + d_k − r_N)ᵀ M_j (·)`` with ``M_j = (I + Δ_N W_j)⁻¹ Δ_N``, hence
+
+        S_k = P + Φ^jᵀ M_j Φ^j,    v_k = v^P_k − Φ^jᵀ M_j (d_k − r_N).
+
+    Everything is a batched 4×4 operation over j; no step depends on the previous one.
+    """
+    N = b.shape[0]
+    n = Phi.shape[0]
+    powers = _matrix_powers(Phi, N + 1)  # Φ^j, j = 0..N
+    g = powers[:N] @ bd  # Φ^p Bd, p = 0..N−1
+    W = np.zeros((N + 1, n, n))
+    np.cumsum(np.einsum("pi,pj->pij", g, g) / G_P, axis=0, out=W[1:])
+    M = np.linalg.solve(np.eye(n) + Delta_N @ W, np.broadcast_to(Delta_N, (N + 1, n, n)))
+    M = 0.5 * (M + M.transpose(0, 2, 1))
+    # Stationary offsets f^P_i and their drift d_k = Σ_{i≥k} Φ^{N−1−i} Bd f^P_i.
+    f_P = (b + v_P[1:] @ bd) / G_P
+    drift = np.zeros((N + 1, n))
+    # Row p of the summand is Φ^p Bd f_{N−1−p}; summing p = 0..N−1−k gives d_k.
+    drift[:N] = np.cumsum(g * f_P[::-1, None], axis=0)[::-1]
+    # Index by k: j = N − k.
+    powers_k = powers[::-1]
+    M_k = M[::-1]
+    S = P + powers_k.transpose(0, 2, 1) @ M_k @ powers_k
+    S = 0.5 * (S + S.transpose(0, 2, 1))
+    correction = np.einsum("kij,kj->ki", M_k, drift - r_N)
+    v = v_P - np.einsum("kji,kj->ki", powers_k, correction)
+    return S, v
+
+
+def _frozen(array: np.ndarray) -> np.ndarray:
+    array = np.asarray(array)
+    if array.flags.writeable:
+        array.setflags(write=False)
+    return array
+

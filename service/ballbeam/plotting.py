@@ -1,0 +1,56 @@
+"""Paper-style figures (x with x_d; θ with θ_d and the ±limit lines; u), written to PNG."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ballbeam.errors import BallbeamError
+
+
+def plot_run(
+    path: str | Path,
+    time_s: np.ndarray,
+    true_states: np.ndarray,
+    reference_states: np.ndarray,
+    voltage_v: np.ndarray,
+    theta_limit_rad: float,
+    title: str,
+    lateness_us: np.ndarray | None = None,
+) -> None:
+    """Write the figure; an extra panel shows loop lateness when given (replay)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = 4 if lateness_us is not None else 3
+    figure, axes = plt.subplots(panels, 1, sharex=True, figsize=(8, 2.4 * panels))
+    axes[0].plot(time_s, reference_states[:, 3], "--", label="x_d")
+    axes[0].plot(time_s, true_states[:, 3], label="x")
+    axes[0].set_ylabel("ball position [m]")
+    axes[1].plot(time_s, reference_states[:, 0], "--", label="θ_d")
+    axes[1].plot(time_s, true_states[:, 0], label="θ")
+    for sign in (-1, 1):
+        axes[1].axhline(sign * theta_limit_rad, color="red", linewidth=0.8)
+    axes[1].set_ylabel("servo angle [rad]")
+    axes[1].set_title(f"limits ±{math.degrees(theta_limit_rad):.0f}°", fontsize=8, loc="right")
+    axes[2].plot(time_s, voltage_v, label="u")
+    axes[2].set_ylabel("voltage [V]")
+    if lateness_us is not None:
+        axes[3].plot(time_s[: len(lateness_us)], lateness_us, linewidth=0.6)
+        axes[3].set_ylabel("lateness [µs]")
+    axes[-1].set_xlabel("time [s]")
+    for axis in axes:
+        axis.grid(True, alpha=0.3)
+        axis.legend(loc="upper right", fontsize=8)
+    figure.suptitle(title)
+    figure.tight_layout()
+    try:
+        figure.savefig(path, dpi=110)
+    except OSError as error:
+        raise BallbeamError(f"cannot write plot {path}: {error}") from error
+    finally:
+        plt.close(figure)

@@ -1,0 +1,1 @@
+"""Thin imperative edges: frames, bus, ticker, recorder, daemon, launcher."""

@@ -1,0 +1,90 @@
+"""Opening the CAN bus as configured, and refusing one whose traffic would leave the host.
+
+``udp_multicast`` on an interface-local IPv6 group (``ff11::/16``, scope 1) is the default: the
+kernel loops such packets back to local listeners and never transmits them. Wider scopes and
+IPv4 groups go out on the network and are refused unless ``bus.allow_off_host`` is set.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import secrets
+from typing import Any
+
+import can
+
+from ballbeam.config import BusSection
+from ballbeam.errors import BusError
+
+INTERFACE_LOCAL_SCOPE = 1
+VCAN_HINT = (
+    "create it with: sudo modprobe vcan && sudo ip link add dev {channel} type vcan "
+    "&& sudo ip link set up {channel}"
+)
+
+
+def multicast_scope(group: str) -> int | None:
+    """IPv6 multicast scope nibble, or None for an IPv4 group."""
+    try:
+        address = ipaddress.ip_address(group)
+    except ValueError as error:
+        raise BusError(f"bus.channel {group!r} is not an IP multicast group address") from error
+    if not address.is_multicast:
+        raise BusError(f"bus.channel {group!r} is not a multicast address")
+    if isinstance(address, ipaddress.IPv4Address):
+        return None
+    return address.packed[1] & 0x0F
+
+
+def check_stays_on_host(bus: BusSection) -> None:
+    """Raise BusError when the configured bus would send frames off this host."""
+    if bus.interface != "udp_multicast" or bus.allow_off_host:
+        return
+    scope = multicast_scope(bus.channel)
+    if scope != INTERFACE_LOCAL_SCOPE:
+        where = "an IPv4 group" if scope is None else f"scope {scope:x}"
+        raise BusError(
+            f"bus.channel {bus.channel} is {where}: its traffic leaves this host. Use an "
+            "interface-local ff11:: group, or set bus.allow_off_host = true deliberately"
+        )
+
+
+def isolated_group(group: str) -> str:
+    """The same group prefix with random low 64 bits: a private bus for one run."""
+    address = ipaddress.IPv6Address(group)
+    prefix = int(address) >> 64 << 64
+    return str(ipaddress.IPv6Address(prefix | secrets.randbits(64)))
+
+
+def open_bus(bus: BusSection) -> can.BusABC:
+    """A python-can bus for ``bus``; BusError with a remedy when it cannot be opened."""
+    check_stays_on_host(bus)
+    options: dict[str, Any] = dict(bus.options)
+    if bus.interface == "udp_multicast":
+        options.setdefault("port", bus.port)
+        options.setdefault("hop_limit", 1)
+    try:
+        return can.Bus(interface=bus.interface, channel=bus.channel, **options)
+    except ImportError as error:
+        raise BusError(
+            f"bus interface {bus.interface!r} needs a package that is not installed: {error}"
+        ) from error
+    except (OSError, can.CanError, ValueError, TypeError) as error:
+        hint = ""
+        if bus.interface == "socketcan":
+            hint = "; " + VCAN_HINT.format(channel=bus.channel)
+        raise BusError(
+            f"cannot open bus {bus.interface}:{bus.channel}: {error}{hint}"
+        ) from error
+
+
+def socketcan_available() -> bool:
+    """True when this kernel supports AF_CAN sockets (SocketCAN)."""
+    import socket
+
+    try:
+        probe = socket.socket(socket.PF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
+    except (OSError, AttributeError):
+        return False
+    probe.close()
+    return True

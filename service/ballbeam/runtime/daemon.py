@@ -1,0 +1,398 @@
+"""The controller daemon: a fixed-rate loop (or lock-step) around the pure control law.
+
+Each cycle: latest valid sensor frame → observer → tracker → clamp to ±V → command frame.
+Everything it hears and does is recorded. It never dies on a bad frame: frames are counted
+and recorded as rejected; losing the plant commands 0 V and records a fault.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+
+import can
+
+from ballbeam.config import Config
+from ballbeam.core.control import (
+    ControllerDesign,
+    ControllerState,
+    CycleOutput,
+    coast_cycles,
+    control_cycle,
+)
+from ballbeam.core.plant import SensorReading
+from ballbeam.errors import BallbeamError, FrameError
+from ballbeam.logs.recorder import Recorder
+from ballbeam.runtime import channels
+from ballbeam.runtime.frames import (
+    COMMAND_ID,
+    CounterCheck,
+    FrameContract,
+    SensorFrame,
+    TruthAngle,
+    TruthBall,
+    next_counter,
+)
+from ballbeam.runtime.signals import StopFlag
+from ballbeam.runtime.ticker import Ticker
+
+log = logging.getLogger("ballbeam.daemon")
+
+MAX_RECORDED_REJECTIONS = 1000  # per reason: beyond this only the count grows (no log floods)
+
+
+class PlantLostError(BallbeamError, TimeoutError):
+    """The plant stopped sending sensor frames."""
+
+
+@dataclass
+class DaemonStats:
+    cycles: int = 0
+    measured_cycles: int = 0
+    coasted_cycles: int = 0
+    fault_cycles: int = 0
+    overruns: int = 0
+    skipped_periods: int = 0
+    command_resends: int = 0
+    own_frames: int = 0
+    theta_violation_events: int = 0
+    rejected: Counter[str] = field(default_factory=Counter)
+    end_reason: str = "completed"
+
+    def as_metadata(self, sensor_check: CounterCheck) -> dict[str, str]:
+        values: dict[str, object] = {
+            key: value for key, value in vars(self).items() if key != "rejected"
+        }
+        values.update({f"rejected_{reason}": count for reason, count in self.rejected.items()})
+        values["rejected_total"] = sum(self.rejected.values())
+        values["sensor_frames_lost"] = sensor_check.lost
+        values["sensor_frames_repeated"] = sensor_check.repeated
+        values["sensor_frames_stale"] = sensor_check.stale
+        return {key: str(value) for key, value in values.items()}
+
+
+class ControllerDaemon:
+    def __init__(
+        self,
+        config: Config,
+        design: ControllerDesign,
+        bus: can.BusABC,
+        contract: FrameContract,
+        recorder: Recorder,
+        stop: StopFlag,
+    ) -> None:
+        self.config = config
+        self.design = design
+        self.bus = bus
+        self.contract = contract
+        self.recorder = recorder
+        self.stop = stop
+        self.period_ns = config.controller.period_ns
+        self.n_cycles = round(config.run.duration_s * config.controller.rate_hz)
+        self.state = ControllerState()
+        self.sensor_check = CounterCheck()
+        self.stats = DaemonStats()
+        self.command_counter = 0
+        self.latest_sensor: SensorFrame | None = None
+        self.fresh = False
+        self.cycles_since_sensor = 0
+        self.in_fault = False
+        self.last_output: CycleOutput | None = None
+        self.last_command: bytes | None = None
+        self.truth_angle: TruthAngle | None = None
+        self.wall_origin_ns = time.time_ns()
+        self.mono_origin_ns = time.monotonic_ns()
+        self.theta_limit_rad = config.limits.theta_rad
+        self.outside_limit = False
+        self.handles = {
+            topic: recorder.add_struct_channel(topic, schema)
+            for topic, schema in channels.STRUCT_TOPICS.items()
+        }
+        self.handles.update(
+            {
+                topic: recorder.add_json_channel(topic, "ballbeam/Event", channels.EVENT_SCHEMA)
+                for topic in channels.JSON_TOPICS
+            }
+        )
+        self.log_time_ns = self.wall_origin_ns
+
+    # -- recording helpers --------------------------------------------------------------------
+    def _wall_ns(self) -> int:
+        return self.wall_origin_ns + time.monotonic_ns() - self.mono_origin_ns
+
+    def _event(self, topic: str, kind: str, detail: str) -> None:
+        self.recorder.record(
+            self.handles[topic],
+            self.log_time_ns,
+            {"cycle": self.state.cycle, "kind": kind, "detail": detail},
+        )
+
+    def _record_frame(self, topic: str, message: can.Message) -> None:
+        data = bytes(message.data).ljust(8, b"\0")[:8]
+        self.recorder.record(
+            self.handles[topic],
+            self.log_time_ns,
+            (message.timestamp, message.arbitration_id, message.dlc, data),
+        )
+
+    def _reject(self, reason: str, detail: str) -> None:
+        self.stats.rejected[reason] += 1
+        if self.stats.rejected[reason] <= MAX_RECORDED_REJECTIONS:
+            self._event("/faults", f"rejected_{reason}", detail)
+
+    # -- frames -------------------------------------------------------------------------------
+    def _handle(self, message: can.Message) -> None:
+        if message.arbitration_id == COMMAND_ID:
+            self.stats.own_frames += 1  # our own command looped back by the bus
+            return
+        self._record_frame("/can/rx", message)
+        try:
+            frame = self.contract.decode(message.arbitration_id, bytes(message.data))
+        except FrameError as error:
+            self._reject(error.reason, str(error))
+            return
+        if isinstance(frame, SensorFrame):
+            verdict = self.sensor_check.classify(frame.counter)
+            if verdict == "ok":
+                self.latest_sensor = frame
+                self.fresh = True
+            elif verdict == "repeated":
+                self._on_repeated_sensor(frame)
+            else:
+                self._reject("stale", f"sensor counter {frame.counter} is older than the last")
+        elif isinstance(frame, TruthAngle):
+            self.truth_angle = frame
+        elif isinstance(frame, TruthBall):
+            angle = self.truth_angle
+            if angle is not None and angle.counter == frame.counter:
+                self.recorder.record(
+                    self.handles["/truth"],
+                    self.log_time_ns,
+                    (frame.counter, angle.theta_rad, angle.theta_rate_rad_s,
+                     frame.velocity_m_s, frame.position_m),
+                )
+                self.truth_angle = None
+        else:
+            self._reject("direction", f"unexpected {type(frame).__name__} frame")
+
+    def _on_repeated_sensor(self, frame: SensorFrame) -> None:
+        """Lock-step: the plant resent a sample because our answer was lost; answer again
+        without advancing the controller (so determinism survives frame loss)."""
+        if self.config.run.mode == "lockstep" and self.last_command is not None:
+            self._send_command_bytes(self.last_command)
+            self.stats.command_resends += 1
+
+    # -- commands -----------------------------------------------------------------------------
+    def _send_command_bytes(self, data: bytes) -> None:
+        message = can.Message(arbitration_id=COMMAND_ID, data=data, is_extended_id=False)
+        try:
+            self.bus.send(message)
+        except can.CanError as error:
+            self._event("/faults", "send_failed", str(error))
+            return
+        message.timestamp = self._wall_ns() * 1e-9
+        self._record_frame("/can/tx", message)
+
+    def _command(self, voltage_v: float, requested_v: float, enable: bool) -> None:
+        sensor_counter = self.latest_sensor.counter if self.latest_sensor is not None else 0
+        arbitration_id, data = self.contract.encode_command(
+            self.command_counter, voltage_v, enable, sensor_counter
+        )
+        assert arbitration_id == COMMAND_ID
+        self.last_command = data
+        self._send_command_bytes(data)
+        self.recorder.record(
+            self.handles["/command"],
+            self.log_time_ns,
+            (self.state.cycle, voltage_v, requested_v, int(enable), self.command_counter,
+             sensor_counter),
+        )
+        self.command_counter = next_counter(self.command_counter)
+
+    # -- one cycle ----------------------------------------------------------------------------
+    def _cycle(self) -> None:
+        cycle = self.state.cycle
+        reading: SensorReading | None = None
+        sensor = self.latest_sensor
+        if self.fresh and sensor is not None:
+            reading = SensorReading(sensor.angle_counts, sensor.position_counts)
+            self.cycles_since_sensor = 0
+        else:
+            self.cycles_since_sensor += 1
+        self.fresh = False
+        timeout = self.config.controller.sensor_timeout_periods
+        if self.state.prediction is not None and self.cycles_since_sensor >= timeout:
+            self._fault_cycle()
+            return
+        if self.in_fault:
+            self.in_fault = False
+            self._event("/events", "sensor_frames_resumed", f"after {timeout}+ silent periods")
+        self._record_sensor(cycle, reading)
+        self.state, output = control_cycle(self.design, self.state, reading)
+        self.last_output = output
+        self.stats.cycles += 1
+        if reading is None:
+            self.stats.coasted_cycles += 1
+        else:
+            self.stats.measured_cycles += 1
+        self._command(output.voltage_v, output.requested_v, enable=True)
+        estimate = output.estimate
+        self.recorder.record(self.handles["/estimate"], self.log_time_ns,
+                             (cycle, *(float(v) for v in estimate)))
+        reference, reference_input_v = self.design.reference(cycle)
+        self.recorder.record(self.handles["/reference"], self.log_time_ns,
+                             (cycle, *(float(v) for v in reference), reference_input_v))
+        self._watch_theta(float(estimate[0]))
+
+    def _record_sensor(self, cycle: int, reading: SensorReading | None) -> None:
+        sensor = self.latest_sensor
+        if reading is None or sensor is None:
+            self.recorder.record(self.handles["/sensor"], self.log_time_ns,
+                                 (cycle, 0, 0, 0, 0, 0, math.nan, math.nan))
+            return
+        measurement = self.design.measurement(reading)
+        self.recorder.record(
+            self.handles["/sensor"],
+            self.log_time_ns,
+            (cycle, 1, sensor.counter, sensor.status, reading.angle_counts,
+             reading.position_counts,
+             float(measurement[0]) / self.config.model.angle_sensor_gain,
+             float(measurement[1]) / self.config.model.position_sensor_gain),
+        )
+
+    def _fault_cycle(self) -> None:
+        """No sensor frame for too long: 0 V, disabled, coast the observer on 0 V."""
+        if not self.in_fault:
+            self.in_fault = True
+            self._event("/faults", "sensor_timeout",
+                        f"no valid sensor frame for {self.cycles_since_sensor} periods; 0 V")
+            log.error("sensor frames lost for %d periods: commanding 0 V",
+                      self.cycles_since_sensor)
+            if self.config.controller.on_sensor_loss == "stop":
+                self.stats.end_reason = "sensor_timeout"
+                self.stop.set("sensor_timeout")
+        cycle = self.state.cycle
+        self._record_sensor(cycle, None)
+        self._command(0.0, 0.0, enable=False)
+        self.state = coast_cycles(self.design, self.state, 0.0, 1)
+        self.stats.cycles += 1
+        self.stats.fault_cycles += 1
+
+    def _watch_theta(self, theta_estimate_rad: float) -> None:
+        outside = abs(theta_estimate_rad) > self.theta_limit_rad + 1e-9
+        if outside and not self.outside_limit:
+            self.stats.theta_violation_events += 1
+            self._event("/events", "theta_violation",
+                        f"estimated |θ| = {math.degrees(abs(theta_estimate_rad)):.2f}° > "
+                        f"{self.config.limits.theta_deg}°")
+        self.outside_limit = outside
+
+    def _record_timing(self, deadline_ns: int, start_ns: int, skipped: int) -> None:
+        end_ns = time.monotonic_ns()
+        self.recorder.record(
+            self.handles["/timing"],
+            self.log_time_ns,
+            (self.state.cycle - 1, deadline_ns, start_ns, end_ns, start_ns - deadline_ns, skipped),
+        )
+
+    # -- loops --------------------------------------------------------------------------------
+    def _wait_for_plant(self) -> int:
+        """Block until the first valid sensor frame; its arrival time (monotonic ns)."""
+        give_up = time.monotonic() + self.config.controller.start_timeout_s
+        while not self.stop.is_set():
+            remaining = give_up - time.monotonic()
+            if remaining <= 0:
+                raise PlantLostError(
+                    f"no sensor frame from the plant within "
+                    f"{self.config.controller.start_timeout_s} s on "
+                    f"{self.config.bus.interface}:{self.config.bus.channel}; is the emulator "
+                    "running on the same bus?"
+                )
+            message = self.bus.recv(timeout=min(remaining, 0.1))
+            if message is None:
+                continue
+            arrival_ns = time.monotonic_ns()
+            self.log_time_ns = self._wall_ns()
+            self._handle(message)
+            if self.fresh:
+                return arrival_ns
+        return time.monotonic_ns()
+
+    def run(self) -> DaemonStats:
+        self._event("/events", "daemon_start", f"mode={self.config.run.mode}")
+        try:
+            arrival_ns = self._wait_for_plant()
+            if not self.stop.is_set():
+                if self.config.run.mode == "lockstep":
+                    self._run_lockstep()
+                else:
+                    self._run_realtime(arrival_ns)
+        except PlantLostError:
+            self.stats.end_reason = "plant_lost"
+            raise
+        finally:
+            self._shutdown()
+        return self.stats
+
+    def _run_lockstep(self) -> None:
+        silence_s = self.config.controller.lockstep_timeout_s
+        self.wall_origin_ns = self.log_time_ns
+        while not self.stop.is_set() and self.state.cycle < self.n_cycles:
+            if self.fresh:
+                start_ns = time.monotonic_ns()
+                self.log_time_ns = self.wall_origin_ns + self.state.cycle * self.period_ns
+                self._cycle()
+                self._record_timing(start_ns, start_ns, 0)
+                continue
+            message = self.bus.recv(timeout=silence_s)
+            if message is None:
+                self._event("/faults", "plant_silent", f"no frame for {silence_s} s")
+                self.stats.end_reason = "plant_silent"
+                log.error("plant silent for %.1f s in lock-step: stopping", silence_s)
+                return
+            self._handle(message)
+
+    def _run_realtime(self, arrival_ns: int) -> None:
+        origin_ns = arrival_ns + self.config.controller.phase_offset_us * 1000
+        ticker = Ticker(self.period_ns, spin_ns=self.config.controller.spin_us * 1000,
+                        start_ns=origin_ns)
+        self.mono_origin_ns, self.wall_origin_ns = origin_ns, self._wall_ns_at(origin_ns)
+        while not self.stop.is_set() and self.state.cycle < self.n_cycles:
+            tick = ticker.wait()
+            self.log_time_ns = self.wall_origin_ns + tick.cycle * self.period_ns
+            if tick.skipped:
+                self.stats.overruns += 1
+                self.stats.skipped_periods += tick.skipped
+                self._coast_skipped(tick.skipped)
+            while (message := self.bus.recv(timeout=0)) is not None:
+                self._handle(message)
+            self._cycle()
+            self._record_timing(tick.deadline_ns, tick.start_ns, tick.skipped)
+
+    def _wall_ns_at(self, monotonic_ns: int) -> int:
+        return self.wall_origin_ns + monotonic_ns - self.mono_origin_ns
+
+    def _coast_skipped(self, count: int) -> None:
+        if self.state.prediction is None:
+            self.state = ControllerState(cycle=self.state.cycle + count)
+            return
+        held_v = self.last_output.voltage_v if self.last_output is not None else 0.0
+        if self.in_fault:
+            held_v = 0.0
+        self.state = coast_cycles(self.design, self.state, held_v, count)
+        self._event("/events", "overrun", f"skipped {count} period(s), coasting on the model")
+
+    def _shutdown(self) -> None:
+        """0 V, disabled — sent a few times since a frame can be lost — then the stop event."""
+        for _ in range(3):
+            self._send_command_bytes(
+                self.contract.encode_command(self.command_counter, 0.0, False, 0)[1]
+            )
+            self.command_counter = next_counter(self.command_counter)
+        reason = self.stop.signal_name if self.stop.signal_name else self.stats.end_reason
+        if self.stop.signal_name in ("SIGINT", "SIGTERM"):
+            self.stats.end_reason = self.stop.signal_name
+        self._event("/events", "daemon_stop", f"reason={reason}; 0 V commanded")

@@ -1,0 +1,31 @@
+"""SIGINT/SIGTERM as a flag the loops poll: they stop at a cycle boundary, command 0 V and
+finish their files, instead of dying mid-write."""
+
+from __future__ import annotations
+
+import signal
+import threading
+from types import FrameType
+
+
+class StopFlag:
+    def __init__(self) -> None:
+        self._event = threading.Event()
+        self.signal_name: str | None = None
+
+    def is_set(self) -> bool:
+        return self._event.is_set()
+
+    def set(self, reason: str = "requested") -> None:
+        self.signal_name = self.signal_name or reason
+        self._event.set()
+
+    def install(self) -> StopFlag:
+        """Route SIGINT and SIGTERM to this flag (main thread only)."""
+
+        def handler(signum: int, _frame: FrameType | None) -> None:
+            self.set(signal.Signals(signum).name)
+
+        signal.signal(signal.SIGINT, handler)
+        signal.signal(signal.SIGTERM, handler)
+        return self

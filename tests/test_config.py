@@ -1,0 +1,137 @@
+"""The config loader: paper values, extends, overrides, and one clear error for bad input."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from ballbeam.config import Config, load_config, parse_override
+from ballbeam.errors import ConfigError
+
+from .conftest import CONFIGS
+
+
+def test_paper_config_holds_the_papers_setup(paper_config_path: Path) -> None:
+    config = load_config(paper_config_path)
+    assert config.initial.theta_deg == -52.0
+    assert config.initial.ball_position_m == 0.195
+    assert config.limits.voltage_v == 5.0
+    assert config.limits.theta_deg == 52.0
+    constants = config.constants()
+    # α = km·kg/(Rm·Jm·kg²), β = km·kg, γ = −5 g r / (7 L), computed here from the paper's table.
+    assert constants.alpha == pytest.approx(0.00767 * 70 / (2.6 * 3.87e-7 * 70**2), rel=1e-12)
+    assert constants.alpha == pytest.approx(108.90, abs=0.01)
+    assert constants.beta == pytest.approx(0.5369, rel=1e-12)
+    assert constants.gamma == pytest.approx(-5 * 9.81 / (7 * 17), rel=1e-9)
+    # The paper's 5 V slope: 5/β.
+    assert constants.slew_rate_rad_s(5.0) == pytest.approx(9.3127, abs=1e-4)
+
+
+def test_defaults_equal_the_paper_file(paper_config_path: Path) -> None:
+    from_file = load_config(paper_config_path)
+    defaults = load_config(None)
+    assert from_file.model == defaults.model
+    assert from_file.initial == defaults.initial
+    assert from_file.limits == defaults.limits
+
+
+@pytest.mark.parametrize("path", sorted(CONFIGS.glob("paths/*.toml")))
+def test_path_configs_load(path: Path) -> None:
+    config = load_config(path)
+    assert config.initial.ball_position_m == 0.195
+
+
+def test_extends_merges_and_overrides(tmp_path: Path) -> None:
+    (tmp_path / "base.toml").write_text("[plan]\nkind = 'bang_bang'\n[run]\nduration_s = 3.0\n")
+    (tmp_path / "child.toml").write_text("extends = 'base.toml'\n[run]\nduration_s = 5.0\n")
+    config = load_config(tmp_path / "child.toml")
+    assert config.plan.kind == "bang_bang"
+    assert config.run.duration_s == 5.0
+
+
+def test_overrides_are_toml_values_validated_like_the_file() -> None:
+    config = load_config(None, ["plan.kind=rate_limited", "tracker.q=[1, 2, 3, 4]", "run.duration_s=2"])
+    assert config.plan.kind == "rate_limited"
+    assert config.tracker.q == (1.0, 2.0, 3.0, 4.0)
+    assert config.run.duration_s == 2.0
+    assert parse_override("a.b.c = 'x'") == {"a": {"b": {"c": "x"}}}
+
+
+@pytest.mark.parametrize(
+    ("overrides", "fragment"),
+    [
+        (["plan.kindd=bang_bang"], "unknown key 'plan.kindd'"),
+        (["nosuch.key=1"], "unknown key 'nosuch'"),
+        (["plan.kind=zigzag"], "'plan.kind'"),
+        (["limits.voltage_v=-5"], "'limits.voltage_v'"),
+        (["limits.theta_deg=-52"], "'limits.theta_deg'"),
+        (["tracker.r=0"], "'tracker.r'"),
+        (["tracker.q=[1, -2, 3, 4]"], "positive semi-definite"),
+        (["tracker.q=[1, 2]"], "'tracker.q'"),
+        (["controller.rate_hz=3000"], "controller.rate_hz"),
+        (["controller.rate_hz=300"], "whole number of nanoseconds"),
+        (["run.duration_s=abc"], "'run.duration_s'"),
+        (["initial.theta_deg=70"], "hard stops"),
+        (["plan.voltage_margin_v=5"], "leaves no voltage"),
+        (["noequals"], "dotted.key=value"),
+        (["=3"], "dotted.key=value"),
+        (["expect.settle_time_s={ below = 2 }"], "expect.settle_time_s"),
+    ],
+)
+def test_bad_values_name_the_key(overrides: list[str], fragment: str) -> None:
+    with pytest.raises(ConfigError, match=None) as caught:
+        load_config(None, overrides)
+    assert fragment in str(caught.value)
+
+
+def test_missing_file_and_bad_toml(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="not found"):
+        load_config(tmp_path / "absent.toml")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[plan\nkind=")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_config(bad)
+    with pytest.raises(ConfigError, match="directory"):
+        load_config(tmp_path)
+
+
+def test_extends_cycle_is_refused(tmp_path: Path) -> None:
+    (tmp_path / "a.toml").write_text("extends = 'b.toml'\n")
+    (tmp_path / "b.toml").write_text("extends = 'a.toml'\n")
+    with pytest.raises(ConfigError, match="extends"):
+        load_config(tmp_path / "a.toml")
+
+
+def test_config_is_immutable() -> None:
+    config = load_config(None)
+    with pytest.raises(Exception):  # noqa: B017 - pydantic's frozen error type is internal
+        config.run.duration_s = 1.0  # type: ignore[misc]
+
+
+_toml_scalars = st.one_of(
+    st.integers(-10**6, 10**6).map(str),
+    st.floats(allow_nan=False, allow_infinity=False, width=32).map(repr),
+    st.text(alphabet="abcxyz_", max_size=6).map(lambda text: f"'{text}'"),
+    st.just("true"),
+    st.just("[1, 2]"),
+)
+_keys = st.sampled_from(
+    ["plan.kind", "plan.step_s", "tracker.r", "tracker.q", "run.duration_s", "plant.seed",
+     "controller.rate_hz", "limits.voltage_v", "bus.port", "initial.theta_deg", "x.y", "plan"]
+)
+
+
+@settings(max_examples=300, deadline=None)
+@given(key=_keys, value=_toml_scalars)
+def test_fuzzed_overrides_either_load_or_raise_config_error(key: str, value: str) -> None:
+    try:
+        config = load_config(None, [f"{key}={value}"])
+    except ConfigError as error:
+        assert str(error)
+    else:
+        assert isinstance(config, Config)
+        assert math.isfinite(config.run.duration_s)

@@ -1,0 +1,53 @@
+"""Run metrics on hand-built traces with known answers."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from ballbeam.core.metrics import compute_metrics, settle_time
+
+
+def _states(theta: np.ndarray, position: np.ndarray) -> np.ndarray:
+    states = np.zeros((len(position), 4))
+    states[:, 0] = theta
+    states[:, 3] = position
+    return states
+
+
+def test_settle_time_is_the_first_time_after_which_the_ball_stays_in_band() -> None:
+    t = np.arange(10) * 0.5
+    x = np.array([0.1, 0.05, 0.001, 0.003, 0.0015, -0.001, 0.0, 0.0, 0.0, 0.0])
+    # Leaves the band at index 3 (3 mm), back inside from index 4 on: settles at t[4] = 2.0 s.
+    assert settle_time(t, x, 0.002) == 2.0
+    assert settle_time(t, np.full(10, 0.01), 0.002) is None
+    assert settle_time(t, np.zeros(10), 0.002) == 0.0
+    # Outside at the very last sample: never settled.
+    assert settle_time(t, np.r_[np.zeros(9), 0.01], 0.002) is None
+
+
+def test_metrics_on_a_known_trace() -> None:
+    t = np.arange(5) * 0.001
+    theta = np.radians([-52.0, 53.0, 54.0, 10.0, 0.0])
+    x = np.array([0.195, 0.1, -0.004, -0.001, 0.0])
+    ref = np.array([0.195, 0.1, 0.0, 0.0, 0.0])
+    u = np.array([5.0, -5.0, 4.0, 0.0, -6.0])
+    metrics = compute_metrics(t, _states(theta, x), u, ref, math.radians(52))
+    assert metrics.settle_time_s == pytest.approx(0.003)
+    assert metrics.overshoot_mm == pytest.approx(4.0)
+    assert metrics.max_abs_theta_deg == pytest.approx(54.0)
+    assert metrics.theta_violation_s == pytest.approx(0.002)
+    assert metrics.max_abs_u_v == 6.0
+    assert metrics.tracking_rms_mm == pytest.approx(1e3 * math.sqrt((0.004**2 + 0.001**2) / 5))
+
+
+def test_overshoot_is_measured_past_zero_on_the_far_side_of_the_start() -> None:
+    t = np.arange(4) * 0.01
+    from_left = compute_metrics(t, _states(np.zeros(4), np.array([-0.1, 0.0, 0.003, 0.0])),
+                                np.zeros(4), np.zeros(4), 1.0)
+    assert from_left.overshoot_mm == pytest.approx(3.0)
+    no_overshoot = compute_metrics(t, _states(np.zeros(4), np.array([0.1, 0.05, 0.01, 0.0])),
+                                   np.zeros(4), np.zeros(4), 1.0)
+    assert no_overshoot.overshoot_mm == 0.0

@@ -1,0 +1,116 @@
+"""Plant physics and sensors against analytic answers."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose
+
+from ballbeam.assembly import plant_parameters
+from ballbeam.config import load_config
+from ballbeam.core.plant import (
+    PlantParameters,
+    PlantPhysics,
+    drive_voltage,
+    next_noise,
+    read_sensors,
+)
+
+
+def _params(**changes: object) -> PlantParameters:
+    base = plant_parameters(load_config(None, ["plant.deadzone_v=0"]))
+    return dataclasses.replace(base, **changes)  # type: ignore[arg-type]
+
+
+def test_motor_step_response_matches_the_papers_formula() -> None:
+    params = _params()
+    physics = PlantPhysics(params)
+    alpha, ab = params.alpha, params.alpha_beta
+    state = np.zeros(4)
+    times = []
+    angles = []
+    for k in range(1, 301):  # 300 ms at 1 kHz, 10 substeps each
+        state = physics.advance(state, 5.0, 10)
+        times.append(k * 1e-3)
+        angles.append(state[0])
+    t = np.array(times)
+    # Paper §5: θ(t) = 5α(t/(αβ) − 1/(αβ)² + e^{−αβt}/(αβ)²).
+    expected = 5 * alpha * (t / ab - 1 / ab**2 + np.exp(-ab * t) / ab**2)
+    assert_allclose(angles, expected, rtol=1e-9, atol=1e-12)
+    # The paper's numeric form: 9.3250 t − 0.0660 + 0.1600 e^{−58.46 t} (its rounding).
+    assert_allclose(angles[-1], 9.3250 * 0.3 - 0.0660, rtol=2e-3)
+
+
+def test_saturation_then_dead_zone() -> None:
+    params = _params(deadzone_v=0.2)
+    assert drive_voltage(params, 0.15) == 0.0
+    assert drive_voltage(params, -0.2) == 0.0
+    assert drive_voltage(params, 1.0) == pytest.approx(0.8)
+    assert drive_voltage(params, -12.0) == pytest.approx(-4.8)
+    assert drive_voltage(params, 5.0) == pytest.approx(4.8)
+
+
+def test_linear_ball_follows_gamma_theta() -> None:
+    params = _params()
+    physics = PlantPhysics(params)
+    theta = math.radians(10)
+    state = physics.advance(np.array([theta, 0.0, 0.0, 0.0]), 0.0, 1000)  # 0.1 s, u = 0
+    t = 1000 * params.substep_s
+    assert_allclose(state[3], 0.5 * params.gamma * theta * t**2, rtol=1e-9)
+    assert_allclose(state[2], params.gamma * theta * t, rtol=1e-9)
+
+
+def test_nonlinear_ball_agrees_with_linear_for_small_angles_and_departs_for_large() -> None:
+    small = np.array([math.radians(2), 0.0, 0.0, 0.1])
+    linear = PlantPhysics(_params())
+    nonlinear = PlantPhysics(_params(nonlinear_ball=True))
+    a = linear.advance(small, 0.0, 2000)
+    b = nonlinear.advance(small, 0.0, 2000)
+    assert_allclose(a, b, rtol=2e-3, atol=1e-7)
+    # At 50°: sin φ = (r/L) sin θ, so the ball accelerates less than γθ says.
+    large = np.array([math.radians(50), 0.0, 0.0, 0.0])
+    params = _params()
+    b = nonlinear.advance(large, 0.0, 1)
+    expected_accel = -(5 / 7) * params.gravity_m_per_s2 * params.arm_to_beam_ratio * math.sin(
+        math.radians(50)
+    )
+    assert_allclose(b[2] / params.substep_s, expected_accel, rtol=1e-6)
+
+
+def test_nonlinear_ball_stops_at_the_beam_end_and_servo_at_hard_stop() -> None:
+    params = _params(nonlinear_ball=True)
+    physics = PlantPhysics(params)
+    state = np.array([math.radians(-40), 0.0, 0.0, 0.15])  # rolls toward +x
+    state = physics.advance(state, 0.0, 20000)
+    assert state[3] == pytest.approx(params.beam_half_length_m)
+    assert state[2] == 0.0
+    state = physics.advance(np.array([0.0, 0.0, 0.0, 0.0]), 5.0, 5000)
+    assert state[0] == pytest.approx(params.hard_stop_rad)
+
+
+def test_sensors_quantise_to_encoder_and_adc_counts() -> None:
+    params = _params()
+    # 4096 counts per revolution; ±10 V 16-bit ADC; 10 V across the 17 in beam.
+    assert params.encoder_step_rad == pytest.approx(2 * math.pi / 4096)
+    assert params.adc_step_m == pytest.approx(20 / 65536 / (10 / 0.4318))
+    reading = read_sensors(params, np.array([math.radians(-52), 0, 0, 0.195]), 0.0)
+    assert reading.angle_counts == round(-52 / 360 * 4096)
+    assert reading.position_counts == round(0.195 / params.adc_step_m)
+    clipped = read_sensors(params, np.array([0, 0, 0, 5.0]), 0.0)
+    assert clipped.position_counts == 32767
+
+
+def test_band_limited_noise_has_the_configured_std_and_correlation() -> None:
+    params = _params(position_noise_m=1e-3)
+    rng = np.random.default_rng(7)
+    noise = 0.0
+    samples = np.empty(100_000)
+    for k in range(samples.size):
+        noise = next_noise(params, noise, rng)
+        samples[k] = noise
+    assert samples[1000:].std() == pytest.approx(1e-3, rel=0.05)
+    lag1 = np.corrcoef(samples[1000:-1], samples[1001:])[0, 1]
+    assert lag1 == pytest.approx(params.noise_pole, abs=0.02)
