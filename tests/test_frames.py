@@ -7,6 +7,7 @@ only appears as a second opinion that our fast path produces its exact bytes.
 
 from __future__ import annotations
 
+import dataclasses
 import random
 from pathlib import Path
 
@@ -72,6 +73,12 @@ def protect(frame_id: int, body: bytes) -> bytes:
     return crc.to_bytes(2, "little") + body
 
 
+def cantools_protect(payload: bytes, frame_id: int) -> bytes:
+    protected = apply_profile5_crc(payload, frame_id)
+    assert protected is not None
+    return bytes(protected)
+
+
 def test_reference_crc_matches_the_published_check_value() -> None:
     # The catalogued check value of CRC-16/CCITT-FALSE (= AUTOSAR CRC16) over "123456789".
     assert crc16_bitwise(b"123456789") == 0x29B1
@@ -81,7 +88,7 @@ def test_reference_crc_matches_the_published_check_value() -> None:
 def test_crc_matches_reference_and_cantools(payload: bytes, frame_id: int) -> None:
     ours = e2e_profile5_crc(payload, frame_id)
     assert ours == crc16_bitwise(payload[2:] + bytes((frame_id & 0xFF, frame_id >> 8)))
-    assert ours.to_bytes(2, "little") == bytes(apply_profile5_crc(payload, frame_id))[:2]
+    assert ours.to_bytes(2, "little") == cantools_protect(payload, frame_id)[:2]
 
 
 # --- hand-computed layouts ---------------------------------------------------------------
@@ -123,9 +130,8 @@ int16 = st.integers(-INT16_MAX - 1, INT16_MAX)
 
 
 def physical(lsb: float, raw_max: int) -> st.SearchStrategy[float]:
-    # The whole encodable range: anything that rounds to within ±raw_max.
-    limit = (raw_max + 0.49) * lsb
-    return st.floats(-limit, limit, allow_nan=False)
+    # The whole signal range [min|max] = ±raw_max·lsb.
+    return st.floats(-raw_max * lsb, raw_max * lsb, allow_nan=False)
 
 
 def assert_within_half_lsb(decoded: float, sent: float, lsb: float) -> None:
@@ -193,14 +199,13 @@ def test_extremes_round_trip(contract: FrameContract) -> None:
         frame_id, data = contract.encode(frame)
         back = contract.decode(frame_id, data)
         assert type(back) is type(frame)
-        assert back == pytest.approx(frame) if False else _close(back, frame)
+        assert_close(back, frame)
 
 
-def _close(a: Frame, b: Frame) -> bool:
-    for name in type(a).__dataclass_fields__:
-        x, y = getattr(a, name), getattr(b, name)
-        assert x == pytest.approx(y, rel=1e-12, abs=1e-12), name
-    return True
+def assert_close(a: Frame, b: Frame) -> None:
+    for field in dataclasses.fields(a):
+        x, y = getattr(a, field.name), getattr(b, field.name)
+        assert x == pytest.approx(y, rel=1e-12, abs=1e-12), field.name
 
 
 @given(counters, physical(VOLT_LSB, INT16_MAX), st.booleans(), counters)
@@ -215,10 +220,10 @@ def test_matches_cantools_bytes_and_values(
         "Enable": int(enable),
         "SensorCounter": sensor_counter,
     }
-    reference = bytes(apply_profile5_crc(message.encode(signals), 0x100))
+    reference = cantools_protect(message.encode(signals), 0x100)
     data = contract.encode_voltage_command(counter, voltage_v, enable, sensor_counter)
     assert data == reference
-    decoded = message.decode(data, decode_choices=False)
+    decoded = message.decode_simple(data, decode_choices=False)
     frame = contract.decode(0x100, data)
     assert isinstance(frame, VoltageCommand)
     assert frame.voltage_v == decoded["Voltage"]
@@ -230,8 +235,9 @@ def test_matches_cantools_bytes_and_values(
 @pytest.mark.parametrize(
     ("frame_id", "args"),
     [
-        (0x100, (0, 32.7675, True, 0)),  # rounds to raw 32768
-        (0x100, (0, -32.7675, True, 0)),  # raw -32768 is outside the symmetric range
+        (0x100, (0, 32.7675, True, 0)),  # would round to raw 32768: would wrap
+        (0x100, (0, -32.768, True, 0)),  # raw -32768 is outside the symmetric range
+        (0x100, (0, 32.7671, True, 0)),  # past the limit, though it would round onto it
         (0x100, (0, float("nan"), True, 0)),
         (0x100, (0, float("inf"), True, 0)),
         (0x100, (256, 0.0, True, 0)),
@@ -262,16 +268,49 @@ def test_encode_refuses_out_of_range(
     assert isinstance(info.value, ValueError)
 
 
-def test_encode_within_half_lsb_of_the_limit_is_accepted(contract: FrameContract) -> None:
-    data = contract.encode_voltage_command(0, 32.7674, True, 0)
-    frame = contract.decode(0x100, data)
-    assert isinstance(frame, VoltageCommand)
-    assert frame.voltage_v == pytest.approx(32.767)
+def test_encode_accepts_the_limits_themselves(contract: FrameContract) -> None:
+    for voltage_v in (32.767, -32.767, 32.767 + 1e-12):
+        frame = contract.decode(0x100, contract.encode_voltage_command(0, voltage_v, True, 0))
+        assert isinstance(frame, VoltageCommand)
+        assert frame.voltage_v == pytest.approx(voltage_v, abs=1e-9)
 
 
 def test_integer_fields_refuse_floats(contract: FrameContract) -> None:
     with pytest.raises(TypeError):
         contract.encode_sensor(0, 1.5, 0, 0)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(
+    ("frame_id", "body"),
+    [
+        (0x100, bytes([0, 0x00, 0x80, 0x01, 0x00, 0x00])),  # Voltage raw -32768
+        (0x100, bytes([0, 0x00, 0x00, 0x03, 0x00, 0x00])),  # reserved bit 41 set
+        (0x100, bytes([0, 0x00, 0x00, 0x01, 0x00, 0x01])),  # reserved byte 7
+        (0x101, bytes([0, 0x00, 0x00, 0x00, 0x00, 0x04])),  # Status bit 2 is reserved
+        (0x102, bytes([0, 0x00, 0x00, 0x08, 0x00, 0x00])),  # Theta raw -2**19
+        (0x103, bytes([0, 0x00, 0x00, 0x00, 0x00, 0x80])),  # BallVelocity raw -2**19
+    ],
+)
+def test_decode_refuses_values_outside_the_contract(
+    contract: FrameContract, frame_id: int, body: bytes
+) -> None:
+    with pytest.raises(FrameRejectedError) as info:
+        contract.decode(frame_id, protect(frame_id, body))
+    assert info.value.reason == "range"
+
+
+def test_decode_accepts_bytearray_and_reports_reasons(contract: FrameContract) -> None:
+    data = contract.encode_sensor(1, 2, 3, 1)
+    assert contract.decode(0x101, bytearray(data)) == SensorFrame(1, 2, 3, 1)
+    for frame_id, payload, reason in [
+        (0x104, data, "unknown_id"),
+        (0x101, data[:7], "length"),
+        (0x101, data[:1] + bytes([data[1] ^ 0x80]) + data[2:], "crc"),
+    ]:
+        with pytest.raises(FrameRejectedError) as info:
+            contract.decode(frame_id, payload)
+        assert info.value.reason == reason
+        assert f"0x{frame_id:03X}" in str(info.value)
 
 
 # --- the decoder under fuzzing ---------------------------------------------------------------
@@ -377,10 +416,10 @@ def test_seeded_mass_fuzz(contract: FrameContract) -> None:
         elif roll < 0.7:
             data = protect(frame_id, rng.randbytes(6))
         else:
-            data = bytearray(protect(frame_id, rng.randbytes(6)))
+            mutated = bytearray(protect(frame_id, rng.randbytes(6)))
             for _ in range(rng.randint(1, 4)):
-                data[rng.randrange(8)] ^= 1 << rng.randrange(8)
-            data = bytes(data)
+                mutated[rng.randrange(8)] ^= 1 << rng.randrange(8)
+            data = bytes(mutated)
         result = decode_or_reject(contract, frame_id, data)
         key = result if isinstance(result, str) else "ok"
         reasons[key] = reasons.get(key, 0) + 1
@@ -398,7 +437,7 @@ def test_counter_stream_through_decode(contract: FrameContract) -> None:
         frame = contract.decode(SENSOR_ID, data)
         verdicts.append(check.classify(frame.counter))
     assert verdicts == ["ok"] * 4 + ["repeated", "ok", "stale"] + ["ok"] * 6
-    assert (check.accepted, check.lost, check.repeated, check.stale) == (10, 1, 1, 1)
+    assert (check.accepted, check.lost, check.repeated, check.stale) == (11, 1, 1, 1)
     assert check.last == 261 % 256
 
 
@@ -456,13 +495,11 @@ def test_counter_check_reset_accepts_the_next_frame() -> None:
 
 @given(
     st.integers(0, 255),
-    st.lists(st.tuples(st.integers(0, 127), st.integers(0, 3)), min_size=1, max_size=200),
+    st.lists(st.tuples(st.integers(0, 126), st.integers(0, 3)), min_size=1, max_size=200),
 )
-def test_counter_check_counts_losses_and_repeats(
-    start: int, steps: list[tuple[int, int]]
-) -> None:
+def test_counter_check_counts_losses_and_repeats(start: int, steps: list[tuple[int, int]]) -> None:
     # A lossy, duplicating (but not reordering) channel: before each delivered frame, `gap`
-    # frames are dropped (< 128 in a row), then it arrives 1 + `dups` times.
+    # frames are dropped (≤ 126 in a row: delta ≤ 127), then it arrives 1 + `dups` times.
     check = CounterCheck()
     counter = start
     first = True
@@ -509,7 +546,9 @@ def _without_message(tmp_path: Path, frame_id: int) -> Path:
             skipping = line.startswith(f"BO_ {frame_id} ")
         elif not line.startswith(" SG_"):
             skipping = False
-        if skipping or f" {frame_id} " in line and line.startswith(("CM_ BO_", "CM_ SG_", "VAL_")):
+        if skipping or (
+            f" {frame_id} " in line and line.startswith(("CM_ BO_", "CM_ SG_", "VAL_"))
+        ):
             continue
         kept.append(line)
     path = tmp_path / "missing.dbc"
@@ -522,15 +561,15 @@ def _without_message(tmp_path: Path, frame_id: int) -> Path:
     [
         ("BO_ 257 SensorMeasurement: 8", "BO_ 261 SensorMeasurement: 8", "0x101"),
         ("BO_ 258 PlantTruthAngle: 8", "BO_ 2147483906 PlantTruthAngle: 8", "0x102"),  # extended
-        ("BO_ 259 PlantTruthBall: 8", "BO_ 259 PlantTruthBall: 7", "8-byte"),
+        ("BO_ 259 PlantTruthBall: 8", "BO_ 259 PlantTruthBall: 16", "8-byte"),  # CAN FD size
         (
-            " SG_ Counter : 16|8@1+ (1,0) [0|255] \"\" Controller",
-            " SG_ Counter : 16|7@1+ (1,0) [0|127] \"\" Controller",
+            ' SG_ Counter : 16|8@1+ (1,0) [0|255] "" Controller',
+            ' SG_ Counter : 16|7@1+ (1,0) [0|127] "" Controller',
             "Counter",
         ),
         ("SG_ Voltage : 24|16@1-", "SG_ Volts : 24|16@1-", "Voltage"),
         ("SG_ AngleCounts : 24|16@1- (1,0)", "SG_ AngleCounts : 24|16@1- (2,0)", "raw integer"),
-        ("SG_ Theta : 24|20@1-", "SG_ Theta : 24|20@0-", "Intel"),
+        ("SG_ Status : 56|8@1+", "SG_ Status : 63|8@0+", "Intel"),  # same byte, Motorola
     ],
 )
 def test_a_dbc_that_breaks_the_contract_is_refused(
@@ -551,11 +590,11 @@ def test_a_dbc_missing_a_message_is_refused(tmp_path: Path, frame_id: int) -> No
 
 def test_missing_or_unparsable_dbc_is_refused(tmp_path: Path) -> None:
     missing = tmp_path / "nope.dbc"
-    with pytest.raises(FrameError, match="nope.dbc"):
+    with pytest.raises(FrameError, match=r"nope\.dbc"):
         FrameContract.load(missing)
     garbage = tmp_path / "garbage.dbc"
     garbage.write_text("this is not a DBC\n", encoding="utf-8")
-    with pytest.raises(BallbeamError, match="garbage.dbc"):
+    with pytest.raises(BallbeamError, match=r"garbage\.dbc"):
         FrameContract.load(garbage)
 
 

@@ -21,7 +21,12 @@ from ballbeam.config import Config
 from ballbeam.core.plant import PlantPhysics, initial_noise, next_noise, read_sensors
 from ballbeam.errors import FrameError
 from ballbeam.runtime.frames import (
-    COMMAND_ID,
+    SENSOR_ID,
+    STATUS_HELD,
+    STATUS_WATCHDOG,
+    TRUTH_ANGLE_ID,
+    TRUTH_BALL_ID,
+    VOLTAGE_COMMAND_ID,
     CounterCheck,
     FrameContract,
     VoltageCommand,
@@ -32,8 +37,6 @@ from ballbeam.runtime.ticker import Ticker
 
 log = logging.getLogger("ballbeam.emulator")
 
-STATUS_WATCHDOG = 0x01
-STATUS_HELD = 0x02
 
 
 @dataclass
@@ -84,8 +87,8 @@ class PlantEmulator:
         else:
             truth_only = False
         theta, theta_rate, velocity, position = (float(v) for v in self.state)
-        self._send(*self.contract.encode_truth_angle(self.counter, theta, theta_rate))
-        self._send(*self.contract.encode_truth_ball(self.counter, position, velocity))
+        self._send(TRUTH_ANGLE_ID, self.contract.encode_truth_angle(self.counter, theta, theta_rate))
+        self._send(TRUTH_BALL_ID, self.contract.encode_truth_ball(self.counter, position, velocity))
         if truth_only:
             return
         reading = read_sensors(self.physics.params, self.state, self.noise_m)
@@ -93,15 +96,16 @@ class PlantEmulator:
             0 if self.started else STATUS_HELD
         )
         self._send(
-            *self.contract.encode_sensor(
+            SENSOR_ID,
+            self.contract.encode_sensor(
                 self.counter, reading.angle_counts, reading.position_counts, status
-            )
+            ),
         )
         self.counters.samples_sent += 1
 
     def _accept_command(self, message: can.Message) -> VoltageCommand | None:
         """A valid, fresh command frame, or None (counted)."""
-        if message.arbitration_id != COMMAND_ID:
+        if message.arbitration_id != VOLTAGE_COMMAND_ID:
             self.counters.own_or_foreign += 1
             return None
         try:

@@ -12,11 +12,9 @@ import numpy as np
 
 from ballbeam.config import Config
 from ballbeam.core.control import ControllerDesign
+from ballbeam.core.guard import AngleGuard
 from ballbeam.core.metrics import RunMetrics, compute_metrics
 from ballbeam.core.observer import design_observer
-from ballbeam.core.planning.bang_bang import plan_bang_bang
-from ballbeam.core.planning.rate_limited import plan_rate_limited
-from ballbeam.core.planning.time_optimal import plan_time_optimal
 from ballbeam.core.plans import Plan
 from ballbeam.core.plant import ADC_COUNT_LIMIT, PlantParameters, PlantPhysics
 from ballbeam.core.simulate import SimulationTrace, simulate_closed_loop
@@ -30,17 +28,24 @@ def make_plan(config: Config) -> Plan:
     start = config.initial.state()
     theta_max_rad = config.limits.theta_rad
     kind = config.plan.kind
+    # Imported per kind: the LP solver is only loaded when the time-optimal path is asked for.
     if kind == "bang_bang":
+        from ballbeam.core.planning.bang_bang import plan_bang_bang
+
         return plan_bang_bang(constants, theta_max_rad, start)
     if kind == "rate_limited":
+        from ballbeam.core.planning.rate_limited import plan_rate_limited
+
         return plan_rate_limited(
             constants, theta_max_rad, config.plan.servo_rate_limit_rad_s, start
         )
+    from ballbeam.core.planning.time_optimal import plan_time_optimal
+
     return plan_time_optimal(
         config.design_model(),
         start,
         voltage_limit_v=config.limits.voltage_v - config.plan.voltage_margin_v,
-        theta_max_rad=theta_max_rad,
+        theta_max_rad=theta_max_rad - math.radians(config.plan.theta_margin_deg),
         step_s=config.plan.step_s or config.controller.period_s,
     )
 
@@ -73,6 +78,24 @@ def controller_design(config: Config, plan: Plan | None = None) -> ControllerDes
         position_noise_m=observer_cfg.position_noise_m
         or math.hypot(DEFAULT_POSITION_NOISE_M, adc_step_m / math.sqrt(12.0)),
     )
+    guard = None
+    if config.controller.theta_guard:
+        constants_alpha = constants.alpha
+        discrete = model.discretize(period_s)
+        brake_v = config.controller.theta_guard_brake_v or max(
+            0.5 * config.limits.voltage_v, config.limits.voltage_v - config.plant.deadzone_v
+        )
+        guard = AngleGuard(
+            theta_limit_rad=math.radians(
+                config.limits.theta_deg - config.controller.theta_guard_margin_deg
+            ),
+            alpha=constants_alpha,
+            alpha_beta=constants_alpha * constants.beta,
+            brake_v=brake_v,
+            voltage_limit_v=config.limits.voltage_v,
+            Ad=discrete.Ad,
+            Bd=discrete.Bd,
+        )
     n_reference = tracker.K.shape[0]
     samples = plan.sample(np.arange(n_reference) * period_s)
     return ControllerDesign(
@@ -82,6 +105,7 @@ def controller_design(config: Config, plan: Plan | None = None) -> ControllerDes
         reference_states=samples.states,
         reference_input_v=samples.input_v,
         voltage_limit_v=config.limits.voltage_v,
+        guard=guard,
         angle_per_count=constants.angle_sensor_gain * encoder_step_rad,
         position_per_count=constants.position_sensor_gain * adc_step_m,
     )

@@ -83,6 +83,9 @@ class PlanSection(_Section):
     voltage_margin_v: float = Field(
         0.5, ge=0, description="time_optimal: voltage kept back for the tracker's corrections"
     )
+    theta_margin_deg: float = Field(
+        0.5, ge=0, le=20, description="time_optimal: the path stays this far inside ±θ limit"
+    )
     step_s: float | None = Field(
         None, gt=0, le=0.05, description="time_optimal: control grid; default the controller period"
     )
@@ -137,6 +140,15 @@ class ControllerSection(_Section):
     start_timeout_s: float = Field(10.0, gt=0, le=3600, description="wait for the plant")
     lockstep_timeout_s: float = Field(
         2.0, gt=0, le=3600, description="lock-step: silence after which the plant is lost"
+    )
+    theta_guard: bool = Field(
+        True, description="cap the voltage so the servo can always stop inside ±θ limit"
+    )
+    theta_guard_margin_deg: float = Field(
+        0.3, ge=0, le=10, description="the guard stops the servo this far inside the limit"
+    )
+    theta_guard_brake_v: float | None = Field(
+        None, gt=0, description="braking voltage the guard counts on; default V − dead zone"
     )
     spin_us: int = Field(200, ge=0, le=10_000, description="busy-wait before each deadline")
 

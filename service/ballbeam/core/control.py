@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ballbeam.core.guard import AngleGuard, guarded_voltage
 from ballbeam.core.observer import ObserverGains, correct, initial_estimate, predict
 from ballbeam.core.plans import Plan
 from ballbeam.core.plant import SensorReading
@@ -30,6 +31,7 @@ class ControllerDesign:
     reference_states: np.ndarray
     reference_input_v: np.ndarray
     voltage_limit_v: float
+    guard: AngleGuard | None  # None: clamp to ±V only
     angle_per_count: float  # measurement units (57·θ) per encoder count
     position_per_count: float  # measurement units (100·x) per ADC count
 
@@ -79,8 +81,11 @@ def control_cycle(
     else:
         estimate = correct(design.observer, state.prediction, design.measurement(reading))
     requested_v = tracker_input(design.tracker, state.cycle, estimate)
-    limit = design.voltage_limit_v
-    voltage_v = min(max(requested_v, -limit), limit)
+    if design.guard is not None:
+        voltage_v = guarded_voltage(design.guard, estimate, requested_v)
+    else:
+        limit = design.voltage_limit_v
+        voltage_v = min(max(requested_v, -limit), limit)
     prediction = predict(design.observer, estimate, voltage_v)
     return (
         ControllerState(cycle=state.cycle + 1, prediction=prediction),

@@ -3,7 +3,7 @@
 Cost, with ``u_ref = u_d`` (``input_reference="feedforward"``) or ``u_ref = 0`` (``"zero"``,
 the paper's ``uᵀRu``)::
 
-    J = ∫₀ᵀ (x − x_d)ᵀQ(x − x_d) + (u − u_ref)ᵀR(u − u_ref) dt + (x(T) − x_d(T))ᵀ S_T (x(T) − x_d(T))
+    J = ∫₀ᵀ (x − x_d)ᵀQ(x − x_d) + (u − u_ref)ᵀR(u − u_ref) dt + e(T)ᵀ S_T e(T),  e = x − x_d
 
 with ``S_T`` the stationary Riccati solution (``terminal="stationary"``: the tracker hands over
 smoothly to the constant LQR used after the horizon) or 0 (``"zero"``: the paper's ``S(T) = 0``,
@@ -74,13 +74,16 @@ class SampledCost:
 
     Per period the cost is ``[δx; δu]ᵀ [[Qd, Nd], [Ndᵀ, Rd − Rh]] [δx; δu] + (u − u_ref)ᵀ Rh
     (u − u_ref)`` with ``δx = x_k − r_k``, ``δu = u_k − ū_k``. Qd (4, 4), Nd (4, 1),
-    Rd (1, 1) (state part plus ``Rh``), Rh (1, 1) = R·h.
+    Rd (1, 1) (state part plus ``Rh``), Rh (1, 1) = R·h. Ad (4, 4), Bd (4, 1): the plant over
+    the same period, read from the same exponential (``model.discretize`` to rounding).
     """
 
     Qd: np.ndarray
     Nd: np.ndarray
     Rd: np.ndarray
     Rh: np.ndarray
+    Ad: np.ndarray
+    Bd: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -133,10 +136,18 @@ def sampled_cost(model: LinearModel, Q: np.ndarray, R: np.ndarray, period_s: flo
     block[n + m :, n + m :] = F
     transition = scipy.linalg.expm(block * period_s)
     # expm = [[e^{−Fᵀh}, e^{−Fᵀh}·W], [0, e^{Fh}]] with W the wanted integral.
-    W = transition[n + m :, n + m :].T @ transition[: n + m, n + m :]
+    plant = transition[n + m :, n + m :]  # e^{Fh} = [[Ad, Bd], [0, I]]
+    W = plant.T @ transition[: n + m, n + m :]
     W = 0.5 * (W + W.T)
-    Rh = np.asarray(R, dtype=float).reshape(m, m) * period_s
-    return SampledCost(Qd=W[:n, :n], Nd=W[:n, n:], Rd=W[n:, n:] + Rh, Rh=Rh)
+    Rh = np.atleast_2d(np.asarray(R, dtype=float)) * period_s
+    return SampledCost(
+        Qd=W[:n, :n],
+        Nd=W[:n, n:],
+        Rd=W[n:, n:] + Rh,
+        Rh=Rh,
+        Ad=plant[:n, :n].copy(),
+        Bd=plant[:n, n:].copy(),
+    )
 
 
 def _check_weights(Q: np.ndarray, R: np.ndarray, n: int, m: int) -> tuple[np.ndarray, np.ndarray]:
@@ -155,7 +166,9 @@ def _check_choices(terminal: str, input_reference: str) -> None:
     if terminal not in ("stationary", "zero"):
         raise ConfigError(f"terminal must be 'stationary' or 'zero', got {terminal!r}")
     if input_reference not in ("feedforward", "zero"):
-        raise ConfigError(f"input_reference must be 'feedforward' or 'zero', got {input_reference!r}")
+        raise ConfigError(
+            f"input_reference must be 'feedforward' or 'zero', got {input_reference!r}"
+        )
 
 
 # ----------------------------------------------------------------------------------------------
@@ -183,11 +196,13 @@ def continuous_tracker(
     n, m = model.B.shape
     Q, R = _check_weights(Q, R, n, m)
     _check_choices(terminal, input_reference)
+    if m != 1:
+        raise ConfigError(f"the tracker is written for a single-input model, got {m} inputs")
     if not horizon_s > 0.0:
         raise ConfigError(f"horizon must be positive, got {horizon_s} s")
     if time_s is None:
         time_s = np.linspace(0.0, horizon_s, max(2, round(horizon_s / 1e-3) + 1))
-    time_s = np.asarray(time_s, dtype=float)
+    time_s = np.array(time_s, dtype=float)  # a copy: it is frozen into the result
     if time_s.ndim != 1 or np.any(np.diff(time_s) <= 0) or time_s[0] < 0 or time_s[-1] > horizon_s:
         raise ConfigError("time_s must increase strictly within [0, horizon_s]")
     A, B = model.A, model.B
@@ -200,7 +215,7 @@ def continuous_tracker(
         u_ref = samples.input_v[:1] if use_feedforward else np.zeros(m)
         return samples.states[0], u_ref
 
-    x_T, u_T = reference(horizon_s)
+    x_T = reference(horizon_s)[0]
     if terminal == "stationary":
         S_T = scipy.linalg.solve_continuous_are(A, B, Q, R)
         S_T = 0.5 * (S_T + S_T.T)
@@ -272,19 +287,20 @@ def stationary_gain(
     """The sampled-data LQR: ``K`` (1, 4) and the DARE solution ``P`` (4, 4)."""
     n, m = model.B.shape
     Q, R = _check_weights(Q, R, n, m)
-    discrete = model.discretize(period_s)
     cost = sampled_cost(model, Q, R, period_s)
-    P = _dare(discrete.Ad, discrete.Bd, cost)
-    Bd = discrete.Bd
-    K = np.linalg.solve(cost.Rd + Bd.T @ P @ Bd, Bd.T @ P @ discrete.Ad + cost.Nd.T)
+    P = _dare(cost)
+    Bd = cost.Bd
+    K = np.linalg.solve(cost.Rd + Bd.T @ P @ Bd, Bd.T @ P @ cost.Ad + cost.Nd.T)
     return K, P
 
 
-def _dare(Ad: np.ndarray, Bd: np.ndarray, cost: SampledCost) -> np.ndarray:
+def _dare(cost: SampledCost) -> np.ndarray:
     try:
-        P = scipy.linalg.solve_discrete_are(Ad, Bd, cost.Qd, cost.Rd, s=cost.Nd)
+        P = scipy.linalg.solve_discrete_are(cost.Ad, cost.Bd, cost.Qd, cost.Rd, s=cost.Nd)
     except (np.linalg.LinAlgError, ValueError) as error:
-        raise ConfigError(f"no stabilising stationary tracker for these weights: {error}") from error
+        raise ConfigError(
+            f"no stabilising stationary tracker for these weights: {error}"
+        ) from error
     result: np.ndarray = 0.5 * (P + P.T)
     return result
 
@@ -316,17 +332,16 @@ def discrete_tracker(
             f"references must be states (N + 1, {n}) and inputs (N,) with N >= 1 for a "
             f"single-input model, got {r.shape} and {u_bar.shape}"
         )
-    discrete = model.discretize(period_s)
-    Ad, bd = discrete.Ad, discrete.Bd[:, 0]
     cost = sampled_cost(model, Q, R, period_s)
+    Ad, bd = cost.Ad, cost.Bd[:, 0]
     nd = cost.Nd[:, 0]
     rd, rh = float(cost.Rd[0, 0]), float(cost.Rh[0, 0])
-    P = _dare(Ad, discrete.Bd, cost)
+    P = _dare(cost)
 
     # Stage linear terms a_k (N, 4) and b_k (N,).
     u_ref = u_bar if input_reference == "feedforward" else np.zeros(N)
-    a = np.einsum("ij,kj->ki", cost.Qd, r[:N]) + np.multiply.outer(u_bar, nd)
-    b = r[:N] @ nd + (rd - rh) * u_bar + rh * u_ref
+    a = _rows(r[:N], cost.Qd.T) + np.multiply.outer(u_bar, nd)
+    b = _rows(r[:N], nd[:, None])[:, 0] + (rd - rh) * u_bar + rh * u_ref
 
     # The stationary problem (S_N = P): constant gain, LTI feedforward recursion.
     Pb = P @ bd
@@ -337,21 +352,17 @@ def discrete_tracker(
     if terminal == "stationary":
         S = np.broadcast_to(P, (N + 1, n, n))
         v = v_P
+        K = np.broadcast_to(K_P, (N, 1, n))
+        G: np.ndarray | float = G_P
     else:
         S, v = _finite_horizon_deviation(Phi, bd, G_P, P, -P, v_P, b, r[N])
-
-    # Gains and offsets from S_{k+1}, v_{k+1}.
-    if terminal == "stationary":
-        G = np.full(N, G_P)
-        K = np.broadcast_to(K_P, (N, n))
-    else:
-        S_next_b = np.einsum("kij,j->ki", S[1:], bd)  # S_{k+1} Bd (symmetric S)
-        G = rd + S_next_b @ bd
-        K = (np.einsum("ki,ij->kj", S_next_b, Ad) + nd) / G[:, None]
-    offset = (b + v[1:] @ bd) / G
+        S_next_b = np.einsum("kij,j->ki", S[1:], bd)  # S_{k+1} Bd (S symmetric)
+        G = rd + _rows(S_next_b, bd[:, None])[:, 0]
+        K = ((_rows(S_next_b, Ad) + nd) / G[:, None]).reshape(N, 1, n)
+    offset = (b + _rows(v[1:], bd[:, None])[:, 0]) / G
     return DiscreteTracker(
         period_s=float(period_s),
-        K=_frozen(np.ascontiguousarray(K).reshape(N, 1, n)),
+        K=_frozen(K),
         offset_v=_frozen(offset),
         K_final=_frozen(K_P.reshape(1, n)),
         S=_frozen(S),
@@ -415,31 +426,42 @@ def _backward_lti(Phi_T: np.ndarray, c: np.ndarray, v_end: np.ndarray) -> np.nda
     """
     N, n = c.shape
     T, U = scipy.linalg.schur(Phi_T, output="complex")
-    # Real-by-complex products split in two: complex BLAS on (N, n) arrays may start threads.
-    drive_all = (c @ U.real - 1j * (c @ U.imag))[::-1]  # row i: Uᴴ c_{N−1−i}
+    drive_all = (_rows(c, U.real) - 1j * _rows(c, U.imag))[::-1]  # row i: Uᴴ c_{N−1−i}
     z = np.empty((N + 1, n), dtype=complex)  # z[i] = Uᴴ v_{N−i}
     z[0] = U.conj().T @ v_end
     for p in range(n - 1, -1, -1):
-        drive = drive_all[:, p] + z[:-1, p + 1 :] @ T[p, p + 1 :]
+        drive = drive_all[:, p].copy()
+        for q in range(p + 1, n):
+            drive += T[p, q] * z[:-1, q]
         pole = T[p, p]
         z[1:, p] = scipy.signal.lfilter([1.0], [1.0, -pole], drive, zi=[pole * z[0, p]])[0]
-    v: np.ndarray = (z.real @ U.real.T - z.imag @ U.imag.T)[::-1]
+    v: np.ndarray = (_rows(z.real, U.real.T) - _rows(z.imag, U.imag.T))[::-1]
     return v
 
 
-def _matrix_powers(Phi: np.ndarray, count: int) -> np.ndarray:
-    """Φ^j for j = 0..count−1, shape (count, n, n)."""
+def _rows(X: np.ndarray, M: np.ndarray) -> np.ndarray:
+    """``X @ M`` for a tall X (N, n) without BLAS: OpenBLAS would start threads for it, and
+    waking them costs far more than the product when the other core is busy."""
+    result: np.ndarray = np.einsum("ki,ij->kj", X, M)
+    return result
+
+
+def _matrix_powers(Phi: np.ndarray, count: int, negligible: float = 1e-30) -> np.ndarray:
+    """Φ^j for j = 0..J−1, shape (J, n, n), J <= count: it stops once the powers are
+    negligible (a stable Φ; also keeps denormal numbers out of the arithmetic)."""
     n = Phi.shape[0]
     low = np.empty((_POWER_BLOCK, n, n))
     low[0] = np.eye(n)
     for j in range(1, _POWER_BLOCK):
         low[j] = Phi @ low[j - 1]
     step = Phi @ low[-1]
-    high = np.empty((count // _POWER_BLOCK + 1, n, n))
-    high[0] = np.eye(n)
-    for i in range(1, high.shape[0]):
-        high[i] = step @ high[i - 1]
-    powers: np.ndarray = (high[:, None] @ low[None]).reshape(-1, n, n)[:count]
+    high = [np.eye(n)]
+    while len(high) * _POWER_BLOCK < count:
+        following = step @ high[-1]
+        if np.abs(following).max() < negligible:
+            break
+        high.append(following)
+    powers: np.ndarray = (np.array(high)[:, None] @ low[None]).reshape(-1, n, n)[:count]
     return powers
 
 
@@ -465,28 +487,34 @@ def _finite_horizon_deviation(
 
         S_k = P + Φ^jᵀ M_j Φ^j,    v_k = v^P_k − Φ^jᵀ M_j (d_k − r_N).
 
-    Everything is a batched 4×4 operation over j; no step depends on the previous one.
+    Everything is a batched 4×4 operation over j; no step depends on the previous one. Only
+    the last J steps are computed, J such that Φ^J is negligible: before them S_k = P and
+    v_k = v^P_k to working precision.
     """
     N = b.shape[0]
     n = Phi.shape[0]
-    powers = _matrix_powers(Phi, N + 1)  # Φ^j, j = 0..N
-    g = powers[:N] @ bd  # Φ^p Bd, p = 0..N−1
-    W = np.zeros((N + 1, n, n))
+    powers = _matrix_powers(Phi, N + 1)  # Φ^j, j = 0..J
+    J = powers.shape[0] - 1
+    start = N - J  # first k computed: j = N − k runs J..0
+    g = np.einsum("pij,j->pi", powers[:J], bd)  # Φ^p Bd, p = 0..J−1
+    W = np.zeros((J + 1, n, n))
     np.cumsum(np.einsum("pi,pj->pij", g, g) / G_P, axis=0, out=W[1:])
-    M = np.linalg.solve(np.eye(n) + Delta_N @ W, np.broadcast_to(Delta_N, (N + 1, n, n)))
+    M = np.linalg.solve(np.eye(n) + Delta_N @ W, np.broadcast_to(Delta_N, (J + 1, n, n)))
     M = 0.5 * (M + M.transpose(0, 2, 1))
-    # Stationary offsets f^P_i and their drift d_k = Σ_{i≥k} Φ^{N−1−i} Bd f^P_i.
-    f_P = (b + v_P[1:] @ bd) / G_P
-    drift = np.zeros((N + 1, n))
+    # Stationary offsets f^P_i (i >= start) and their drift d_k = Σ_{i≥k} Φ^{N−1−i} Bd f^P_i.
+    f_P = (b[start:] + _rows(v_P[start + 1 :], bd[:, None])[:, 0]) / G_P
+    drift = np.zeros((J + 1, n))
     # Row p of the summand is Φ^p Bd f_{N−1−p}; summing p = 0..N−1−k gives d_k.
-    drift[:N] = np.cumsum(g * f_P[::-1, None], axis=0)[::-1]
-    # Index by k: j = N − k.
-    powers_k = powers[::-1]
+    drift[:J] = np.cumsum(g * f_P[::-1, None], axis=0)[::-1]
+    powers_k = powers[::-1]  # row k − start holds Φ^{N−k}
     M_k = M[::-1]
-    S = P + powers_k.transpose(0, 2, 1) @ M_k @ powers_k
-    S = 0.5 * (S + S.transpose(0, 2, 1))
+    S = np.empty((N + 1, n, n))
+    S[:start] = P
+    S_tail = P + powers_k.transpose(0, 2, 1) @ M_k @ powers_k
+    S[start:] = 0.5 * (S_tail + S_tail.transpose(0, 2, 1))
     correction = np.einsum("kij,kj->ki", M_k, drift - r_N)
-    v = v_P - np.einsum("kji,kj->ki", powers_k, correction)
+    v = v_P.copy()
+    v[start:] -= np.einsum("kji,kj->ki", powers_k, correction)
     return S, v
 
 
@@ -495,4 +523,3 @@ def _frozen(array: np.ndarray) -> np.ndarray:
     if array.flags.writeable:
         array.setflags(write=False)
     return array
-

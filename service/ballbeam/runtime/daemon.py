@@ -24,13 +24,14 @@ from ballbeam.core.control import (
     control_cycle,
 )
 from ballbeam.core.plant import SensorReading
-from ballbeam.errors import BallbeamError, FrameError
+from ballbeam.errors import BallbeamError
 from ballbeam.logs.recorder import Recorder
 from ballbeam.runtime import channels
 from ballbeam.runtime.frames import (
-    COMMAND_ID,
+    VOLTAGE_COMMAND_ID,
     CounterCheck,
     FrameContract,
+    FrameRejectedError,
     SensorFrame,
     TruthAngle,
     TruthBall,
@@ -145,13 +146,13 @@ class ControllerDaemon:
 
     # -- frames -------------------------------------------------------------------------------
     def _handle(self, message: can.Message) -> None:
-        if message.arbitration_id == COMMAND_ID:
+        if message.arbitration_id == VOLTAGE_COMMAND_ID:
             self.stats.own_frames += 1  # our own command looped back by the bus
             return
         self._record_frame("/can/rx", message)
         try:
             frame = self.contract.decode(message.arbitration_id, bytes(message.data))
-        except FrameError as error:
+        except FrameRejectedError as error:
             self._reject(error.reason, str(error))
             return
         if isinstance(frame, SensorFrame):
@@ -187,7 +188,7 @@ class ControllerDaemon:
 
     # -- commands -----------------------------------------------------------------------------
     def _send_command_bytes(self, data: bytes) -> None:
-        message = can.Message(arbitration_id=COMMAND_ID, data=data, is_extended_id=False)
+        message = can.Message(arbitration_id=VOLTAGE_COMMAND_ID, data=data, is_extended_id=False)
         try:
             self.bus.send(message)
         except can.CanError as error:
@@ -198,10 +199,9 @@ class ControllerDaemon:
 
     def _command(self, voltage_v: float, requested_v: float, enable: bool) -> None:
         sensor_counter = self.latest_sensor.counter if self.latest_sensor is not None else 0
-        arbitration_id, data = self.contract.encode_command(
+        data = self.contract.encode_voltage_command(
             self.command_counter, voltage_v, enable, sensor_counter
         )
-        assert arbitration_id == COMMAND_ID
         self.last_command = data
         self._send_command_bytes(data)
         self.recorder.record(
@@ -389,7 +389,7 @@ class ControllerDaemon:
         """0 V, disabled — sent a few times since a frame can be lost — then the stop event."""
         for _ in range(3):
             self._send_command_bytes(
-                self.contract.encode_command(self.command_counter, 0.0, False, 0)[1]
+                self.contract.encode_voltage_command(self.command_counter, 0.0, False, 0)
             )
             self.command_counter = next_counter(self.command_counter)
         reason = self.stop.signal_name if self.stop.signal_name else self.stats.end_reason

@@ -14,9 +14,9 @@ an 8-bit rolling counter in byte 2, payload from bit 24, reserved bits 0.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import operator
-import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Final, Literal, TypeAlias
@@ -129,6 +129,9 @@ def e2e_profile5_crc(payload: bytes | bytearray, data_id: int) -> int:
     return ((crc << 8) & 0xFFFF) ^ table[(crc >> 8) ^ ((data_id >> 8) & 0xFF)]
 
 
+_FieldKind: TypeAlias = Literal["int", "bool", "float"]
+
+
 @dataclass(frozen=True, slots=True)
 class _Field:
     """One signal of a frame as read from the DBC, in raw-integer terms."""
@@ -139,9 +142,11 @@ class _Field:
     sign_bit: int  # 1 << (length - 1) if signed, else 0 (no sign extension)
     raw_min: int  # the DBC's [min|max] converted to raw and clipped to the bit width
     raw_max: int
+    value_min: float  # physical limits for encoding, widened by 1e-6 LSB as cantools does
+    value_max: float
     scale: float
     offset: float
-    kind: Literal["int", "bool", "float"]
+    kind: _FieldKind
 
 
 @dataclass(frozen=True, slots=True)
@@ -157,7 +162,7 @@ class _Layout:
 # The fixed part of the contract: id, dataclass, and (DBC signal, kind) per dataclass field
 # after the counter. Integer fields must have scale 1 and offset 0 in the DBC; scales and
 # ranges of the float fields are the DBC's to choose.
-_CONTRACT: Final[dict[str, tuple[int, type[Frame], tuple[tuple[str, str], ...]]]] = {
+_CONTRACT: Final[dict[str, tuple[int, type[Frame], tuple[tuple[str, _FieldKind], ...]]]] = {
     "VoltageCommand": (
         VOLTAGE_COMMAND_ID,
         VoltageCommand,
@@ -182,7 +187,9 @@ _CONTRACT: Final[dict[str, tuple[int, type[Frame], tuple[tuple[str, str], ...]]]
 _HEADER: Final = (("CRC", 0, 16), ("Counter", 16, 8))  # (name, start bit, length): E2E P5
 
 
-def _field_from_signal(signal: cantools.database.can.Signal, kind: str, where: str) -> _Field:
+def _field_from_signal(
+    signal: cantools.database.can.Signal, kind: _FieldKind, where: str
+) -> _Field:
     if signal.byte_order != "little_endian" or signal.is_float:
         raise FrameError(f"{where}: signal {signal.name} must be an Intel integer signal")
     if signal.multiplexer_ids or signal.is_multiplexer:
@@ -193,7 +200,11 @@ def _field_from_signal(signal: cantools.database.can.Signal, kind: str, where: s
     if scale <= 0:
         raise FrameError(f"{where}: signal {signal.name} needs a positive scale")
     length = signal.length
-    lo, hi = (-(1 << (length - 1)), (1 << (length - 1)) - 1) if signal.is_signed else (0, (1 << length) - 1)
+    lo, hi = (
+        (-(1 << (length - 1)), (1 << (length - 1)) - 1)
+        if signal.is_signed
+        else (0, (1 << length) - 1)
+    )
     # [min|max] are physical; a tolerance of 1e-6 LSB absorbs their decimal rounding.
     if signal.minimum is not None:
         lo = max(lo, math.ceil((signal.minimum - offset) / scale - 1e-6))
@@ -208,9 +219,11 @@ def _field_from_signal(signal: cantools.database.can.Signal, kind: str, where: s
         sign_bit=(1 << (length - 1)) if signal.is_signed else 0,
         raw_min=lo,
         raw_max=hi,
+        value_min=(lo - 1e-6) * scale + offset,
+        value_max=(hi + 1e-6) * scale + offset,
         scale=float(scale),
         offset=float(offset),
-        kind=kind,  # type: ignore[arg-type]  # one of the literals in _CONTRACT
+        kind=kind,
     )
 
 
@@ -233,9 +246,14 @@ def _layout_from_message(
     signals = {signal.name: signal for signal in message.signals}
     for signal_name, start, length in _HEADER:
         signal = signals.get(signal_name)
-        if signal is None or (signal.start, signal.length, signal.is_signed) != (start, length, False):
+        if signal is None or (signal.start, signal.length, signal.is_signed) != (
+            start,
+            length,
+            False,
+        ):
             raise FrameError(
-                f"{where} needs unsigned {signal_name} at bit {start}, {length} bits (E2E profile 5)"
+                f"{where} needs unsigned {signal_name} at bit {start}, {length} bits"
+                " (E2E profile 5 header)"
             )
     fields = [_field_from_signal(signals["Counter"], "int", where)]
     for signal_name, kind in payload:
@@ -257,9 +275,7 @@ def _layout_from_message(
         fields=tuple(fields),
         reserved_mask=~covered & ((1 << (8 * FRAME_LENGTH)) - 1),
         frame_type=frame_type,
-        attributes=operator.attrgetter(
-            *(f.name for f in dataclasses.fields(frame_type))
-        ),
+        attributes=operator.attrgetter(*(f.name for f in dataclasses.fields(frame_type))),
     )
 
 
@@ -267,9 +283,10 @@ class FrameContract:
     """The loaded frame contract: encode and decode the four frames.
 
     Encoders take physical values, round to the signal's resolution and refuse (with
-    :class:`FrameRejectedError`, reason ``"range"``) a value outside the signal's DBC range or
-    NaN, instead of wrapping: senders clamp first (the controller clamps its voltage, the
-    emulator saturates its sensor counts). Integer arguments must be ints (``operator.index``).
+    :class:`FrameRejectedError`, reason ``"range"``) a value outside the signal's DBC
+    ``[min|max]`` (checked before rounding) or NaN, instead of wrapping: senders clamp first
+    (the controller clamps its voltage, the emulator saturates its sensor counts). Integer
+    arguments must be ints (``operator.index``; a float raises TypeError).
     """
 
     __slots__ = ("_by_id", "_by_type", "database", "dbc_text", "path")
@@ -305,9 +322,11 @@ class FrameContract:
         word = 0
         for field, value in zip(layout.fields, values, strict=True):
             if field.kind == "float":
-                try:
+                # Checked before rounding (as cantools' strict encode does), so a value past
+                # the limit is refused even if it would round onto it; NaN fails both tests.
+                if field.value_min <= value <= field.value_max:  # type: ignore[operator]
                     raw = round((value - field.offset) / field.scale)  # type: ignore[operator]
-                except (ValueError, OverflowError):  # NaN, ±inf
+                else:
                     raw = None
             else:
                 raw = operator.index(value)  # type: ignore[arg-type]
