@@ -52,7 +52,7 @@ def print_json(payload: dict[str, Any]) -> None:
 
 def _format_value(value: Any) -> str:
     if value is None:
-        return "never"
+        return "-"
     if isinstance(value, float):
         return f"{value:.4g}"
     return str(value)
@@ -109,6 +109,58 @@ def command_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _configure_logging() -> None:
+    import logging
+
+    logging.basicConfig(level=logging.INFO, format="%(name)s: %(levelname)s: %(message)s")
+
+
+def command_daemon(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from ballbeam.runtime.nodes import new_log_path, run_daemon
+
+    _configure_logging()
+    config = _config(args)
+    log_path = Path(args.log) if args.log else new_log_path(config.run.log_dir, config.plan.kind)
+    run_daemon(config, log_path, args.config)
+    print(log_path)
+    return 0
+
+
+def command_emulator(args: argparse.Namespace) -> int:
+    from ballbeam.runtime.nodes import run_emulator
+
+    _configure_logging()
+    run_emulator(_config(args))
+    return 0
+
+
+def command_run(args: argparse.Namespace) -> int:
+    from ballbeam.analysis import summarise
+    from ballbeam.logs.reader import read_log
+    from ballbeam.runtime.launcher import launch_run
+
+    result = launch_run(args.config, args.overrides)
+    summary = summarise(read_log(result.log_path), result.config.limits.theta_rad)
+    summary = {
+        "mode": result.config.run.mode,
+        "plan_kind": result.config.plan.kind,
+        "wall_time_s": result.wall_time_s,
+        **summary,
+        "log_path": str(result.log_path),
+    }
+    if args.json:
+        print_json(summary)
+    else:
+        print_table(
+            f"bench run ({result.config.run.mode}, {result.config.plan.kind} path) "
+            f"over {result.config.bus.interface}",
+            summary,
+        )
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="ballbeam",
@@ -126,6 +178,22 @@ def build_parser() -> argparse.ArgumentParser:
     simulate.add_argument("--json", action="store_true", help="print one JSON object")
     simulate.add_argument("--plot", metavar="PNG", help="write a paper-style figure")
     simulate.set_defaults(handler=command_simulate)
+
+    run = commands.add_parser(
+        "run", help="run emulator and daemon as two processes over the bus, record, summarise"
+    )
+    _add_config_arguments(run)
+    run.add_argument("--json", action="store_true", help="print one JSON object")
+    run.set_defaults(handler=command_run)
+
+    daemon = commands.add_parser("daemon", help="run the controller daemon alone")
+    _add_config_arguments(daemon)
+    daemon.add_argument("--log", metavar="MCAP", help="log file (default: a new one in logs/)")
+    daemon.set_defaults(handler=command_daemon)
+
+    emulator = commands.add_parser("emulator", help="run the plant emulator alone")
+    _add_config_arguments(emulator)
+    emulator.set_defaults(handler=command_emulator)
     return parser
 
 

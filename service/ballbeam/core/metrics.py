@@ -40,10 +40,12 @@ def compute_metrics(
     reference_position_m: np.ndarray,
     theta_limit_rad: float,
 ) -> RunMetrics:
-    """time_s (N,) evenly spaced; true_states (N, 4); voltage_v (N,) commands; reference (N,)."""
+    """time_s (N,) increasing; true_states (N, 4); voltage_v commands; reference (N,).
+
+    Each sample stands for the interval up to the next one (the last for the previous gap)."""
     if len(time_s) < 2:
         raise ValueError("metrics need at least two samples")
-    period_s = float(time_s[1] - time_s[0])
+    gaps_s = np.diff(time_s, append=2 * time_s[-1] - time_s[-2])
     theta = true_states[:, 0]
     position = true_states[:, 3]
     start_sign = math.copysign(1.0, position[0]) if position[0] != 0 else 0.0
@@ -55,7 +57,7 @@ def compute_metrics(
         settle_time_s=settle_time(time_s, position, SETTLE_BAND_M),
         overshoot_mm=1e3 * overshoot_m,
         max_abs_theta_deg=math.degrees(float(np.max(np.abs(theta)))),
-        theta_violation_s=period_s * int(np.count_nonzero(np.abs(theta) > theta_limit_rad)),
+        theta_violation_s=float(np.sum(gaps_s[np.abs(theta) > theta_limit_rad])),
         max_abs_u_v=float(np.max(np.abs(voltage_v))),
         tracking_rms_mm=1e3 * float(np.sqrt(np.mean((position - reference_position_m) ** 2))),
     )

@@ -348,6 +348,8 @@ class ControllerDaemon:
                 self._record_timing(start_ns, start_ns, 0)
                 continue
             message = self.bus.recv(timeout=silence_s)
+            # Whatever arrives now belongs to the sample of the coming cycle.
+            self.log_time_ns = self.wall_origin_ns + self.state.cycle * self.period_ns
             if message is None:
                 self._event("/faults", "plant_silent", f"no frame for {silence_s} s")
                 self.stats.end_reason = "plant_silent"

@@ -1,0 +1,5 @@
+import sys
+
+from ballbeam.cli import main
+
+sys.exit(main())

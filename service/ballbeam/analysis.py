@@ -1,0 +1,142 @@
+"""What a recorded run says: metrics from plant truth, loop timing, frame statistics, faults.
+
+Computed from the log alone, so ``ballbeam run`` and ``ballbeam replay`` report the same.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ballbeam.core.metrics import compute_metrics
+from ballbeam.errors import LogFormatError
+from ballbeam.logs.reader import RunLog
+
+REQUIRED_TOPICS = ("/command", "/reference", "/truth", "/timing")
+SATURATION_TOLERANCE_V = 1e-6
+
+
+@dataclass(frozen=True)
+class RunSeries:
+    """Time series of one run on the controller's clock (0 = first control cycle)."""
+
+    truth_time_s: np.ndarray
+    truth_states: np.ndarray  # (N, 4)
+    cycle_time_s: np.ndarray
+    voltage_v: np.ndarray
+    reference_states: np.ndarray  # (M, 4) at cycle times
+    lateness_ns: np.ndarray
+
+
+STATE_NAMES = ("theta_rad", "theta_rate_rad_s", "ball_velocity_m_s", "ball_position_m")
+
+
+def run_series(run_log: RunLog) -> RunSeries:
+    missing = [topic for topic in REQUIRED_TOPICS if len(run_log.topics.get(topic, ())) == 0]
+    if missing:
+        where = " (the file was cut short)" if run_log.truncated else ""
+        raise LogFormatError(
+            f"{run_log.path}: no {', '.join(missing)} messages{where}; nothing to analyse"
+        )
+    command = run_log.topics["/command"]
+    reference = run_log.topics["/reference"]
+    truth = run_log.topics["/truth"]
+    timing = run_log.topics["/timing"]
+    origin_ns = int(command.log_time_ns[0])
+    truth_time_s = (truth.log_time_ns - origin_ns) * 1e-9
+    keep = truth_time_s >= -1e-6
+    states = np.column_stack([truth.values[name] for name in STATE_NAMES])[keep]
+    return RunSeries(
+        truth_time_s=np.maximum(truth_time_s[keep], 0.0),
+        truth_states=states,
+        cycle_time_s=(command.log_time_ns - origin_ns) * 1e-9,
+        voltage_v=np.asarray(command.values["voltage_v"], dtype=float),
+        reference_states=np.column_stack([reference.values[name] for name in STATE_NAMES]),
+        lateness_ns=np.asarray(timing.values["lateness_ns"], dtype=np.int64),
+    )
+
+
+def _percentile_us(values_ns: np.ndarray, q: float) -> float:
+    return float(np.percentile(values_ns, q)) * 1e-3 if values_ns.size else math.nan
+
+
+def summarise(run_log: RunLog, theta_limit_rad: float | None = None) -> dict[str, Any]:
+    """One flat dict: the core metrics plus timing, frames, faults and truncation."""
+    series = run_series(run_log)
+    if len(series.truth_time_s) < 2:
+        raise LogFormatError(f"{run_log.path}: fewer than two plant-truth samples")
+    if theta_limit_rad is None:
+        theta_limit_rad = limit_from_log(run_log)
+    reference_time_s = (
+        run_log.topics["/reference"].log_time_ns - run_log.topics["/command"].log_time_ns[0]
+    ) * 1e-9
+    reference_at_truth = np.interp(
+        series.truth_time_s, reference_time_s, series.reference_states[:, 3], right=0.0
+    )
+    metrics = compute_metrics(
+        series.truth_time_s,
+        series.truth_states,
+        series.voltage_v,
+        reference_at_truth,
+        theta_limit_rad,
+    ).as_dict()
+    timing = run_log.topics["/timing"]
+    enabled = run_log.topics["/command"].values["enable"] == 1
+    voltage_limit = voltage_limit_from_log(run_log)
+    saturated = np.abs(series.voltage_v[enabled]) >= voltage_limit - SATURATION_TOLERANCE_V
+    summary_meta = run_log.metadata.get("summary", {})
+    faults = run_log.json_topics.get("/faults")
+    fault_kinds: dict[str, int] = {}
+    for message in faults.messages if faults is not None else ():
+        fault_kinds[str(message.get("kind"))] = fault_kinds.get(str(message.get("kind")), 0) + 1
+
+    def counter(name: str) -> int | None:
+        value = summary_meta.get(name)
+        return int(value) if value is not None and value.lstrip("-").isdigit() else None
+
+    return {
+        **metrics,
+        "cycles": len(timing),
+        "saturation_fraction": float(np.mean(saturated)) if saturated.size else 0.0,
+        "lateness_p50_us": _percentile_us(series.lateness_ns, 50),
+        "lateness_p99_us": _percentile_us(series.lateness_ns, 99),
+        "lateness_max_us": _percentile_us(series.lateness_ns, 100),
+        "overruns": counter("overruns"),
+        "frames_lost": counter("sensor_frames_lost"),
+        "frames_rejected": counter("rejected_total"),
+        "coasted_cycles": counter("coasted_cycles"),
+        "recorder_dropped": counter("recorder_dropped"),
+        "faults": fault_kinds,
+        "end_reason": summary_meta.get("end_reason", "unknown (no summary: run cut short)"),
+        "truncated": run_log.truncated,
+        "truncation_reason": run_log.truncation_reason,
+        "last_time_s": (
+            (run_log.last_complete_time_ns - int(run_log.topics["/command"].log_time_ns[0])) * 1e-9
+            if run_log.last_complete_time_ns is not None
+            else None
+        ),
+    }
+
+
+def _resolved_config(run_log: RunLog) -> dict[str, Any]:
+    import json
+
+    text = run_log.metadata.get("config", {}).get("json")
+    if text is None:
+        raise LogFormatError(f"{run_log.path}: the log holds no resolved config")
+    try:
+        config: dict[str, Any] = json.loads(text)
+    except ValueError as error:
+        raise LogFormatError(f"{run_log.path}: the recorded config is not JSON") from error
+    return config
+
+
+def limit_from_log(run_log: RunLog) -> float:
+    return math.radians(float(_resolved_config(run_log)["limits"]["theta_deg"]))
+
+
+def voltage_limit_from_log(run_log: RunLog) -> float:
+    return float(_resolved_config(run_log)["limits"]["voltage_v"])

@@ -1,0 +1,106 @@
+"""``ballbeam run``: the emulator and the daemon as two OS processes on one bus.
+
+Both children get the same config file and overrides (plus a private bus group when
+``bus.isolate_runs``), so they agree on everything by construction. The run ends when the
+daemon exits; the emulator is then stopped with SIGTERM.
+"""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+from ballbeam.config import Config, load_config
+from ballbeam.errors import BallbeamError
+from ballbeam.runtime.bus import check_stays_on_host, isolated_group
+from ballbeam.runtime.nodes import new_log_path
+
+STOP_GRACE_S = 5.0
+STARTUP_ALLOWANCE_S = 30.0
+
+
+class RunFailedError(BallbeamError, RuntimeError):
+    """A child process failed; the message carries its last error lines."""
+
+
+@dataclass(frozen=True)
+class LaunchResult:
+    config: Config
+    log_path: Path
+    daemon_exit: int
+    emulator_exit: int
+    wall_time_s: float
+
+
+def _tail(text: str, lines: int = 8) -> str:
+    return "\n".join(text.strip().splitlines()[-lines:])
+
+
+def _stop(process: subprocess.Popen[str]) -> int:
+    if process.poll() is None:
+        process.send_signal(signal.SIGTERM)
+        try:
+            return process.wait(timeout=STOP_GRACE_S)
+        except subprocess.TimeoutExpired:
+            process.kill()
+    return process.wait()
+
+
+def launch_run(config_path: str | None, overrides: list[str]) -> LaunchResult:
+    import time
+
+    config = load_config(config_path, overrides)
+    check_stays_on_host(config.bus)
+    child_overrides = list(overrides)
+    if config.bus.interface == "udp_multicast" and config.bus.isolate_runs:
+        group = isolated_group(config.bus.channel)
+        child_overrides.append(f"bus.channel='{group}'")
+        config = load_config(config_path, child_overrides)
+    log_path = new_log_path(config.run.log_dir, config.plan.kind)
+    base = [sys.executable, "-m", "ballbeam"]
+    config_args = ([config_path] if config_path else []) + [
+        argument for override in child_overrides for argument in ("--set", override)
+    ]
+    started = time.monotonic()
+    emulator = subprocess.Popen(
+        [*base, "emulator", *config_args],
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+    )
+    daemon = subprocess.Popen(
+        [*base, "daemon", *config_args, "--log", str(log_path)],
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+    )
+    budget_s = STARTUP_ALLOWANCE_S + config.controller.start_timeout_s + (
+        config.run.duration_s * (1.5 if config.run.mode == "realtime" else 20.0)
+    )
+    try:
+        try:
+            _, daemon_errors = daemon.communicate(timeout=budget_s)
+        except subprocess.TimeoutExpired:
+            daemon.send_signal(signal.SIGTERM)
+            _, daemon_errors = daemon.communicate(timeout=STOP_GRACE_S * 4)
+            raise RunFailedError(
+                f"the daemon did not finish within {budget_s:.0f} s and was stopped; "
+                f"its log: {log_path}"
+            ) from None
+    except BaseException:
+        _stop(emulator)
+        _stop(daemon)
+        raise
+    emulator_exit = _stop(emulator)
+    _, emulator_errors = emulator.communicate()
+    if daemon.returncode != 0:
+        raise RunFailedError(
+            f"the daemon exited with {daemon.returncode}:\n{_tail(daemon_errors)}"
+            + (f"\nemulator said:\n{_tail(emulator_errors)}" if emulator_errors.strip() else "")
+        )
+    return LaunchResult(
+        config=config,
+        log_path=log_path,
+        daemon_exit=daemon.returncode,
+        emulator_exit=emulator_exit,
+        wall_time_s=time.monotonic() - started,
+    )

@@ -1,0 +1,132 @@
+"""Process entry points: the controller daemon and the plant emulator, each on its own.
+
+``ballbeam run`` starts both of these as separate OS processes; ``ballbeam daemon`` and
+``ballbeam emulator`` run one side alone (two terminals, or the daemon against a real plant).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import logging
+import os
+import secrets
+import subprocess
+from importlib import metadata
+from pathlib import Path
+
+from ballbeam.config import Config
+from ballbeam.errors import RecorderError
+from ballbeam.runtime.bus import open_bus
+from ballbeam.runtime.frames import FrameContract
+from ballbeam.runtime.signals import StopFlag
+
+log = logging.getLogger("ballbeam")
+
+REPO_ROOT = Path(__file__).resolve().parents[3]
+PACKAGES = ("ballbeam-hil", "numpy", "scipy", "python-can", "mcap", "pydantic", "cantools")
+
+
+def new_log_path(log_dir: str | Path, kind: str) -> Path:
+    """A unique, sortable file name: UTC time to the microsecond, then a random suffix."""
+    directory = Path(log_dir)
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise RecorderError(f"cannot create log directory {directory}: {error}") from error
+    if not os.access(directory, os.W_OK):
+        raise RecorderError(f"log directory {directory} is not writable")
+    stamp = dt.datetime.now(dt.UTC).strftime("%Y%m%dT%H%M%S.%fZ")
+    return directory / f"{stamp}_{kind}_{secrets.token_hex(3)}.mcap"
+
+
+def git_revision() -> str:
+    try:
+        result = subprocess.run(
+            ["git", "-C", str(REPO_ROOT), "describe", "--always", "--dirty", "--abbrev=12"],
+            capture_output=True, text=True, timeout=5, check=False,
+        )
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return result.stdout.strip() or "unknown"
+
+
+def package_versions() -> dict[str, str]:
+    versions = {}
+    for name in PACKAGES:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            versions[name] = "not installed"
+    return versions
+
+
+def run_daemon(config: Config, log_path: Path, config_path: str | None) -> Path:
+    """Plan, synthesise, open the recorder and the bus, run, finish the file. Returns the log."""
+    from ballbeam.assembly import controller_design
+    from ballbeam.logs.recorder import Recorder
+    from ballbeam.runtime.daemon import ControllerDaemon
+
+    design = controller_design(config)  # before touching the bus: a bad config fails fast
+    contract = FrameContract.load()
+    resolved = json.dumps(config.model_dump(mode="json"), sort_keys=True)
+    attachments = [
+        ("ballbeam.dbc", "text/plain", contract.dbc_text.encode()),
+        ("config.resolved.json", "application/json", resolved.encode()),
+    ]
+    if config_path is not None:
+        try:
+            attachments.append(("config.toml", "application/toml", Path(config_path).read_bytes()))
+        except OSError:
+            pass  # the resolved config above is what the run used
+    recorder = Recorder(
+        log_path,
+        metadata={
+            "config": {"json": resolved, "source": config_path or "(defaults)"},
+            "versions": {**package_versions(), "git_revision": git_revision()},
+            "run": {
+                "mode": config.run.mode,
+                "plan_kind": config.plan.kind,
+                "plan_duration_s": repr(design.plan.duration_s),
+                "period_ns": str(config.controller.period_ns),
+                "sensor_period_ns": str(1_000_000_000 // config.plant.sensor_rate_hz),
+                "bus": f"{config.bus.interface}:{config.bus.channel}",
+            },
+        },
+        attachments=attachments,
+    )
+    stop = StopFlag().install()
+    summary: dict[str, str] = {}
+    try:
+        bus = open_bus(config.bus)
+        try:
+            daemon = ControllerDaemon(config, design, bus, contract, recorder, stop)
+            try:
+                stats = daemon.run()
+            finally:
+                summary = daemon.stats.as_metadata(daemon.sensor_check)
+            log.info("daemon finished: %s", stats.end_reason)
+        finally:
+            bus.shutdown()
+    finally:
+        summary["recorder_dropped"] = str(recorder.dropped)
+        recorder.close(summary=summary)
+    return log_path
+
+
+def run_emulator(config: Config) -> None:
+    from ballbeam_emulator.node import PlantEmulator
+
+    contract = FrameContract.load()
+    stop = StopFlag().install()
+    bus = open_bus(config.bus)
+    emulator = PlantEmulator(config, bus, contract)
+    try:
+        if config.run.mode == "lockstep":
+            emulator.run_lockstep(stop)
+        else:
+            emulator.run_realtime(stop)
+    finally:
+        emulator.stop()
+        bus.shutdown()
+        log.info("emulator stopped: %s", emulator.counters)
