@@ -27,7 +27,8 @@ class RunSeries:
     truth_states: np.ndarray  # (N, 4)
     cycle_time_s: np.ndarray
     voltage_v: np.ndarray
-    reference_states: np.ndarray  # (M, 4) at cycle times
+    reference_time_s: np.ndarray
+    reference_states: np.ndarray  # (M, 4) at reference_time_s
     lateness_ns: np.ndarray
 
 
@@ -54,6 +55,7 @@ def run_series(run_log: RunLog) -> RunSeries:
         truth_states=states,
         cycle_time_s=(command.log_time_ns - origin_ns) * 1e-9,
         voltage_v=np.asarray(command.values["voltage_v"], dtype=float),
+        reference_time_s=(reference.log_time_ns - origin_ns) * 1e-9,
         reference_states=np.column_stack([reference.values[name] for name in STATE_NAMES]),
         lateness_ns=np.asarray(timing.values["lateness_ns"], dtype=np.int64),
     )
@@ -70,11 +72,8 @@ def summarise(run_log: RunLog, theta_limit_rad: float | None = None) -> dict[str
         raise LogFormatError(f"{run_log.path}: fewer than two plant-truth samples")
     if theta_limit_rad is None:
         theta_limit_rad = limit_from_log(run_log)
-    reference_time_s = (
-        run_log.topics["/reference"].log_time_ns - run_log.topics["/command"].log_time_ns[0]
-    ) * 1e-9
     reference_at_truth = np.interp(
-        series.truth_time_s, reference_time_s, series.reference_states[:, 3], right=0.0
+        series.truth_time_s, series.reference_time_s, series.reference_states[:, 3], right=0.0
     )
     metrics = compute_metrics(
         series.truth_time_s,

@@ -12,6 +12,8 @@ import sys
 from collections.abc import Callable, Sequence
 from typing import Any
 
+import numpy as np
+
 from ballbeam.config import Config, load_config
 from ballbeam.errors import BallbeamError
 
@@ -161,6 +163,65 @@ def command_run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _read_log_or_fail(path: str) -> Any:
+    from ballbeam.errors import LogFormatError
+    from ballbeam.logs.reader import read_log
+
+    try:
+        return read_log(path)
+    except IsADirectoryError as error:
+        raise LogFormatError(f"{path} is a directory, not a log file") from error
+    except OSError as error:
+        raise LogFormatError(f"cannot open log {path}: {error.strerror or error}") from error
+
+
+def command_replay(args: argparse.Namespace) -> int:
+    from ballbeam.analysis import limit_from_log, run_series, summarise
+
+    run_log = _read_log_or_fail(args.log)
+    summary = summarise(run_log)
+    summary["log_path"] = args.log
+    exit_code = 0
+    if args.verify:
+        from ballbeam.replay import verify
+
+        result = verify(run_log)
+        summary["verify_cycles"] = result.cycles_checked
+        summary["verify_ok"] = result.ok
+        if result.mismatch is not None:
+            mismatch = result.mismatch
+            summary["verify_first_mismatch_cycle"] = mismatch.cycle
+            print(
+                f"ballbeam: verify FAILED at cycle {mismatch.cycle} (command #{mismatch.index}): "
+                f"recorded {mismatch.recorded_v!r} V, replayed {mismatch.replayed_v!r} V",
+                file=sys.stderr,
+            )
+            exit_code = 1
+    if args.plot:
+        from ballbeam.plotting import plot_run
+
+        series = run_series(run_log)
+        reference = np.array([
+            np.interp(series.truth_time_s, series.reference_time_s,
+                      series.reference_states[:, column], right=0.0)
+            for column in range(4)
+        ]).T
+        voltage = np.interp(series.truth_time_s, series.cycle_time_s, series.voltage_v)
+        plot_run(
+            args.plot, series.truth_time_s, series.truth_states, reference, voltage,
+            limit_from_log(run_log), title=f"replay of {args.log}",
+            lateness_us=series.lateness_ns * 1e-3, lateness_time_s=series.cycle_time_s,
+        )
+    if args.json:
+        print_json(summary)
+    else:
+        if run_log.truncated:
+            print(f"note: the log was cut short ({run_log.truncation_reason}); "
+                  f"read up to {summary['last_time_s']:.3f} s")
+        print_table(f"replay of {args.log}", summary)
+    return exit_code
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="ballbeam",
@@ -190,6 +251,16 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_arguments(daemon)
     daemon.add_argument("--log", metavar="MCAP", help="log file (default: a new one in logs/)")
     daemon.set_defaults(handler=command_daemon)
+
+    replay = commands.add_parser("replay", help="analyse a recorded run; --verify re-runs it")
+    replay.add_argument("log", metavar="LOG.mcap")
+    replay.add_argument("--json", action="store_true", help="print one JSON object")
+    replay.add_argument("--plot", metavar="PNG", help="write a paper-style figure with timing")
+    replay.add_argument(
+        "--verify", action="store_true",
+        help="re-run the controller on the recorded sensor frames; exit 1 on any difference",
+    )
+    replay.set_defaults(handler=command_replay)
 
     emulator = commands.add_parser("emulator", help="run the plant emulator alone")
     _add_config_arguments(emulator)

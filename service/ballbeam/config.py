@@ -131,8 +131,9 @@ class ControllerSection(_Section):
     sensor_timeout_periods: int = Field(
         3, ge=1, le=10000, description="periods without a sensor frame before a fault (0 V)"
     )
-    on_sensor_loss: Literal["stop", "resume"] = Field(
-        "stop", description="after a sensor-loss fault: end the run, or resume when frames return"
+    plant_lost_s: float = Field(
+        0.5, gt=0, le=3600,
+        description="sensor silence after which the run ends (shorter gaps: 0 V, then resume)",
     )
     phase_offset_us: int = Field(
         250, ge=0, le=100_000, description="real time: cycle start after the sensor frame"

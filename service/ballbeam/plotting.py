@@ -19,6 +19,7 @@ def plot_run(
     theta_limit_rad: float,
     title: str,
     lateness_us: np.ndarray | None = None,
+    lateness_time_s: np.ndarray | None = None,
 ) -> None:
     """Write the figure; an extra panel shows loop lateness when given (replay)."""
     import matplotlib
@@ -40,12 +41,14 @@ def plot_run(
     axes[2].plot(time_s, voltage_v, label="u")
     axes[2].set_ylabel("voltage [V]")
     if lateness_us is not None:
-        axes[3].plot(time_s[: len(lateness_us)], lateness_us, linewidth=0.6)
+        when = lateness_time_s if lateness_time_s is not None else time_s[: len(lateness_us)]
+        axes[3].plot(when, lateness_us, linewidth=0.6, label="cycle lateness")
         axes[3].set_ylabel("lateness [µs]")
     axes[-1].set_xlabel("time [s]")
     for axis in axes:
         axis.grid(True, alpha=0.3)
-        axis.legend(loc="upper right", fontsize=8)
+        if axis.get_legend_handles_labels()[0]:
+            axis.legend(loc="upper right", fontsize=8)
     figure.suptitle(title)
     figure.tight_layout()
     try:

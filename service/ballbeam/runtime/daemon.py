@@ -197,7 +197,7 @@ class ControllerDaemon:
         message.timestamp = self._wall_ns() * 1e-9
         self._record_frame("/can/tx", message)
 
-    def _command(self, voltage_v: float, requested_v: float, enable: bool) -> None:
+    def _command(self, cycle: int, voltage_v: float, requested_v: float, enable: bool) -> None:
         sensor_counter = self.latest_sensor.counter if self.latest_sensor is not None else 0
         data = self.contract.encode_voltage_command(
             self.command_counter, voltage_v, enable, sensor_counter
@@ -207,7 +207,7 @@ class ControllerDaemon:
         self.recorder.record(
             self.handles["/command"],
             self.log_time_ns,
-            (self.state.cycle, voltage_v, requested_v, int(enable), self.command_counter,
+            (cycle, voltage_v, requested_v, int(enable), self.command_counter,
              sensor_counter),
         )
         self.command_counter = next_counter(self.command_counter)
@@ -238,7 +238,7 @@ class ControllerDaemon:
             self.stats.coasted_cycles += 1
         else:
             self.stats.measured_cycles += 1
-        self._command(output.voltage_v, output.requested_v, enable=True)
+        self._command(cycle, output.voltage_v, output.requested_v, enable=True)
         estimate = output.estimate
         self.recorder.record(self.handles["/estimate"], self.log_time_ns,
                              (cycle, *(float(v) for v in estimate)))
@@ -271,12 +271,14 @@ class ControllerDaemon:
                         f"no valid sensor frame for {self.cycles_since_sensor} periods; 0 V")
             log.error("sensor frames lost for %d periods: commanding 0 V",
                       self.cycles_since_sensor)
-            if self.config.controller.on_sensor_loss == "stop":
-                self.stats.end_reason = "sensor_timeout"
-                self.stop.set("sensor_timeout")
+        silent_s = self.cycles_since_sensor * self.period_ns * 1e-9
+        if silent_s >= self.config.controller.plant_lost_s and not self.stop.is_set():
+            self._event("/faults", "plant_lost", f"no sensor frame for {silent_s:.3f} s")
+            self.stats.end_reason = "plant_lost"
+            self.stop.set("plant_lost")
         cycle = self.state.cycle
         self._record_sensor(cycle, None)
-        self._command(0.0, 0.0, enable=False)
+        self._command(cycle, 0.0, 0.0, enable=False)
         self.state = coast_cycles(self.design, self.state, 0.0, 1)
         self.stats.cycles += 1
         self.stats.fault_cycles += 1

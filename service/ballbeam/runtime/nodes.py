@@ -12,6 +12,7 @@ import logging
 import os
 import secrets
 import subprocess
+import sys
 from importlib import metadata
 from pathlib import Path
 
@@ -24,6 +25,7 @@ from ballbeam.runtime.signals import StopFlag
 log = logging.getLogger("ballbeam")
 
 REPO_ROOT = Path(__file__).resolve().parents[3]
+REALTIME_SWITCH_INTERVAL_S = 2e-4
 PACKAGES = ("ballbeam-hil", "numpy", "scipy", "python-can", "mcap", "pydantic", "cantools")
 
 
@@ -68,6 +70,9 @@ def run_daemon(config: Config, log_path: Path, config_path: str | None) -> Path:
     from ballbeam.runtime.daemon import ControllerDaemon
 
     design = controller_design(config)  # before touching the bus: a bad config fails fast
+    # The recorder's writer thread shares the GIL; switching sooner bounds how long it can
+    # hold up the control loop's wake-up (measured: p99 lateness roughly halved).
+    sys.setswitchinterval(REALTIME_SWITCH_INTERVAL_S)
     contract = FrameContract.load()
     resolved = json.dumps(config.model_dump(mode="json"), sort_keys=True)
     attachments = [

@@ -1,0 +1,125 @@
+"""The real two-process bench over the ff11 udp_multicast bus (and SocketCAN where present)."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ballbeam.assembly import run_offline
+from ballbeam.config import load_config
+from ballbeam.logs.reader import read_log
+from ballbeam.replay import verify
+from ballbeam.runtime import channels
+from ballbeam.runtime.bus import socketcan_available
+
+from .conftest import CONFIGS
+
+pytestmark = pytest.mark.bus
+PAPER = CONFIGS / "paper.toml"
+SETTLE_TOLERANCE_S = 0.3
+
+
+def ballbeam(*args: str, timeout_s: float = 300) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "ballbeam", *args],
+        capture_output=True, text=True, timeout=timeout_s, check=False,
+    )
+
+
+def run_json(config: Path, tmp_path: Path, *overrides: str) -> dict[str, object]:
+    sets = [item for override in (f"run.log_dir='{tmp_path}'", *overrides)
+            for item in ("--set", override)]
+    result = ballbeam("run", str(config), *sets, "--json")
+    assert result.returncode == 0, result.stderr
+    summary: dict[str, object] = json.loads(result.stdout)
+    return summary
+
+
+@pytest.fixture(scope="module")
+def offline_settle_s() -> float:
+    settle = run_offline(load_config(PAPER)).metrics.settle_time_s
+    assert settle is not None
+    return settle
+
+
+def test_lockstep_run_matches_offline_and_records_every_channel(
+    tmp_path: Path, offline_settle_s: float
+) -> None:
+    summary = run_json(PAPER, tmp_path)
+    assert summary["mode"] == "lockstep"
+    settle = summary["settle_time_s"]
+    assert isinstance(settle, float)
+    assert abs(settle - offline_settle_s) <= SETTLE_TOLERANCE_S
+    assert summary["theta_violation_s"] == 0.0
+    assert summary["end_reason"] == "completed"
+    log_path = Path(str(summary["log_path"]))
+    run_log = read_log(log_path)
+    assert not run_log.truncated
+    for topic in channels.STRUCT_TOPICS:
+        assert len(run_log.topics[topic]) > 0, topic
+    assert {"config", "versions", "run", "summary"} <= set(run_log.metadata)
+    assert {"ballbeam.dbc", "config.resolved.json", "config.toml"} <= set(run_log.attachments)
+    assert verify(run_log).ok
+    # The independent reader: the mcap library opens it and sees the same message count.
+    from mcap.reader import make_reader
+
+    with log_path.open("rb") as stream:
+        reader = make_reader(stream)
+        assert sum(1 for _ in reader.iter_messages()) == run_log.message_count
+
+
+def test_lockstep_is_deterministic(tmp_path: Path) -> None:
+    commands = []
+    for index in range(2):
+        summary = run_json(PAPER, tmp_path / str(index), "run.duration_s=1.0")
+        values = read_log(Path(str(summary["log_path"]))).topics["/command"].values
+        commands.append(np.asarray(values["voltage_v"]))
+    assert len(commands[0]) == 1000
+    assert np.array_equal(commands[0], commands[1])
+
+
+def test_realtime_run_at_1khz_settles_like_offline(tmp_path: Path, offline_settle_s: float) -> None:
+    summary = run_json(PAPER, tmp_path, "run.mode='realtime'")
+    assert summary["mode"] == "realtime"
+    settle = summary["settle_time_s"]
+    assert isinstance(settle, float)
+    assert abs(settle - offline_settle_s) <= SETTLE_TOLERANCE_S
+    assert summary["cycles"] == 4000 or summary["overruns"]
+    assert verify(read_log(Path(str(summary["log_path"])))).ok
+
+
+def test_a_bus_group_that_leaves_the_host_is_refused(tmp_path: Path) -> None:
+    for group in ("ff15:7079:7468:6f6e:6465:6d6f:6d63:6173", "239.74.163.2"):
+        result = ballbeam("run", "--set", f"bus.channel='{group}'",
+                          "--set", f"run.log_dir='{tmp_path}'")
+        assert result.returncode == 2
+        assert "leaves this host" in result.stderr
+        assert "Traceback" not in result.stderr
+    assert not list(tmp_path.glob("*.mcap"))
+
+
+def _vcan_interface() -> str | None:
+    if not socketcan_available():
+        return None
+    for name in sorted(os.listdir("/sys/class/net")):
+        if Path(f"/sys/class/net/{name}/type").read_text().strip() == "280":  # ARPHRD_CAN
+            return name
+    return None
+
+
+@pytest.mark.vcan
+@pytest.mark.skipif(_vcan_interface() is None,
+                    reason="no SocketCAN vcan interface on this kernel (see README to create one)")
+def test_lockstep_run_over_socketcan_vcan(tmp_path: Path, offline_settle_s: float) -> None:
+    interface = _vcan_interface()
+    summary = run_json(PAPER, tmp_path, "bus.interface='socketcan'", f"bus.channel='{interface}'")
+    settle = summary["settle_time_s"]
+    assert isinstance(settle, float) and math.isfinite(settle)
+    assert abs(settle - offline_settle_s) <= SETTLE_TOLERANCE_S

@@ -1,0 +1,423 @@
+"""The MCAP run recorder: round trips checked by the mcap library's own reader, crash safety,
+back-pressure and write errors."""
+
+from __future__ import annotations
+
+import errno
+import io
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+from ballbeam.errors import RecorderError
+from ballbeam.logs import PROFILE, Recorder, StructSchema, read_log
+
+CAN = StructSchema(
+    "ballbeam_msgs/msg/CanFrame",
+    (
+        ("bus_time_s", "float64"),
+        ("arbitration_id", "uint32"),
+        ("dlc", "uint8"),
+        ("data", "uint8[8]"),
+    ),
+)
+STATE = StructSchema(
+    "ballbeam_msgs/msg/State",
+    (
+        ("counter", "int64"),
+        ("angle_rad", "float64"),
+        ("position_m", "float64"),
+        ("saturated", "bool"),
+        ("mode", "int8"),
+        ("gains", "float32[2]"),
+    ),
+)
+FAULT_SCHEMA = {"type": "object", "properties": {"kind": {"type": "string"}}}
+
+
+def _can(i: int) -> tuple[Any, ...]:
+    return (i * 1e-3, 0x100 + (i % 7), 8, bytes((i + j) % 256 for j in range(8)))
+
+
+def _state(i: int) -> tuple[Any, ...]:
+    return (i, np.sin(i * 1e-2), -0.25 + i * 1e-5, i % 3 == 0, (i % 5) - 2, (0.5, -1.25))
+
+
+def _write_run(
+    target: str | Path | io.BytesIO, n: int, **kwargs: Any
+) -> dict[str, list[tuple[int, Any]]]:
+    """Record n cycles of two struct channels plus a few JSON events; return what was sent."""
+    sent: dict[str, list[tuple[int, Any]]] = {"/can": [], "/state": [], "/fault": []}
+    kwargs.setdefault("flush_interval_s", 0.01)
+    with Recorder(
+        target,
+        metadata={"run": {"config": "paper.toml", "seed": "7"}, "host": {"name": "bench"}},
+        attachments=[("paper.toml", "application/toml", b"[plant]\nkm = 0.00767\n")],
+        **kwargs,
+    ) as rec:
+        can = rec.add_struct_channel("/can", CAN)
+        state = rec.add_struct_channel("/state", STATE)
+        fault = rec.add_json_channel("/fault", "ballbeam_msgs/Fault", FAULT_SCHEMA)
+        for i in range(n):
+            t = 5_000_000_000 + i * 1_000_000
+            rec.record(can, t, _can(i))
+            rec.record(state, t + 1, _state(i))
+            sent["/can"].append((t, _can(i)))
+            sent["/state"].append((t + 1, _state(i)))
+            if i % 250 == 0:
+                event = {"kind": "overrun", "cycle": i, "late_s": float("nan") if i else 0.5}
+                rec.record(fault, t + 2, event)
+                sent["/fault"].append((t + 2, event))
+            if i % 250 == 0:
+                time.sleep(0.02)  # lets several flushes happen: several chunks
+        rec.close(summary={"result": "ok", "cycles": str(n)})
+        assert rec.dropped == 0 and rec.rejected == 0 and rec.error is None
+    return sent
+
+
+def _check_with_mcap(data: bytes, sent: dict[str, list[tuple[int, Any]]]) -> None:
+    """The independent answer: the mcap library's reader and our schema's unpack."""
+    reader = make_reader(io.BytesIO(data))
+    assert reader.get_header().profile == PROFILE
+    summary = reader.get_summary()
+    assert summary is not None
+    schemas = {s.name: s for s in summary.schemas.values()}
+    assert schemas[CAN.name].encoding == "ros2msg"
+    assert schemas[CAN.name].data.decode() == CAN.ros2msg
+    assert schemas["ballbeam_msgs/Fault"].encoding == "jsonschema"
+    encodings = {c.topic: c.message_encoding for c in summary.channels.values()}
+    assert encodings == {"/can": "cdr", "/state": "cdr", "/fault": "json"}
+    assert summary.statistics is not None and summary.statistics.chunk_count > 1
+
+    got: dict[str, list[tuple[int, Any]]] = {"/can": [], "/state": [], "/fault": []}
+    for _, channel, message in reader.iter_messages(log_time_order=False):
+        if channel.topic == "/can":
+            got["/can"].append((message.log_time, CAN.unpack(message.data)))
+        elif channel.topic == "/state":
+            got["/state"].append((message.log_time, STATE.unpack(message.data)))
+        else:
+            got["/fault"].append((message.log_time, json.loads(message.data)))
+    assert [t for t, _ in got["/can"]] == [t for t, _ in sent["/can"]]
+    assert [v for _, v in got["/can"]] == [v for _, v in sent["/can"]]
+    for (t_got, v_got), (t_sent, v_sent) in zip(got["/state"], sent["/state"], strict=True):
+        assert t_got == t_sent
+        assert v_got[:5] == v_sent[:5]  # float32 gains are exact for 0.5 and -1.25
+        assert v_got[5] == v_sent[5]
+    assert [t for t, _ in got["/fault"]] == [t for t, _ in sent["/fault"]]
+    assert got["/fault"][0][1] == {"kind": "overrun", "cycle": 0, "late_s": 0.5}
+    assert got["/fault"][1][1]["late_s"] is None  # NaN is not JSON: written as null
+
+    metadata = {m.name: m.metadata for m in reader.iter_metadata()}
+    assert metadata["run"] == {"config": "paper.toml", "seed": "7"}
+    assert metadata["summary"]["result"] == "ok"
+    assert metadata["recorder"]["dropped"] == "0"
+    attachments = {a.name: (a.media_type, a.data) for a in reader.iter_attachments()}
+    assert attachments["paper.toml"] == ("application/toml", b"[plant]\nkm = 0.00767\n")
+
+
+def _check_with_read_log(data: bytes, sent: dict[str, list[tuple[int, Any]]]) -> None:
+    log = read_log(data)
+    assert not log.truncated and log.truncation_reason is None
+    can = log.topics["/can"]
+    assert can.log_time_ns.tolist() == [t for t, _ in sent["/can"]]
+    assert can.values["arbitration_id"].tolist() == [v[1] for _, v in sent["/can"]]
+    assert [bytes(row) for row in can.values["data"]] == [v[3] for _, v in sent["/can"]]
+    state = log.topics["/state"]
+    np.testing.assert_array_equal(state.values["angle_rad"], [v[1] for _, v in sent["/state"]])
+    assert state.values["saturated"].tolist() == [v[3] for _, v in sent["/state"]]
+    assert log.json_topics["/fault"].messages[0]["kind"] == "overrun"
+    assert log.metadata["host"] == {"name": "bench"}
+    assert log.last_complete_time_ns == max(t for msgs in sent.values() for t, _ in msgs)
+
+
+def test_round_trip_in_memory() -> None:
+    buffer = io.BytesIO()
+    sent = _write_run(buffer, 1500)
+    data = buffer.getvalue()
+    _check_with_mcap(data, sent)
+    _check_with_read_log(data, sent)
+
+
+def test_round_trip_on_disk(tmp_path: Path) -> None:
+    path = tmp_path / "run.mcap"
+    sent = _write_run(path, 3000, flush_interval_s=0.01)
+    data = path.read_bytes()
+    _check_with_mcap(data, sent)
+    _check_with_read_log(data, sent)
+    assert read_log(path).topics["/can"].values.shape == (3000,)
+
+
+def test_foxglove_ros2_decoder_reads_our_cdr() -> None:
+    """Foxglove's own ROS 2 decoder (mcap-ros2-support) decodes our ros2msg/cdr channels."""
+    decoder = pytest.importorskip("mcap_ros2.decoder")
+    buffer = io.BytesIO()
+    sent = _write_run(buffer, 300)
+    reader = make_reader(
+        io.BytesIO(buffer.getvalue()), decoder_factories=[decoder.DecoderFactory()]
+    )
+    decoded = list(reader.iter_decoded_messages(topics=["/state"]))
+    assert len(decoded) == len(sent["/state"])
+    for (_, _, message, value), (t, expected) in zip(decoded, sent["/state"], strict=True):
+        assert message.log_time == t
+        assert value.counter == expected[0]
+        assert value.angle_rad == expected[1]
+        assert value.position_m == expected[2]
+        assert bool(value.saturated) == expected[3]
+        assert value.mode == expected[4]
+        assert list(value.gains) == list(expected[5])
+
+
+def test_record_is_cheap_and_never_blocks_when_the_queue_overflows() -> None:
+    buffer = io.BytesIO()
+    with Recorder(buffer, queue_size=16) as rec:
+        can = rec.add_struct_channel("/can", CAN)
+        worst_s = 0.0
+        n = 20_000
+        for i in range(n):
+            t0 = time.perf_counter()
+            rec.record(can, i, _can(0))
+            worst_s = max(worst_s, time.perf_counter() - t0)
+        rec.close()
+        assert rec.dropped > 0
+        assert rec.messages_written + rec.dropped == n
+    # Generous bound: a blocking put would wait for the writer (milliseconds).
+    assert worst_s < 0.05
+    log = read_log(buffer.getvalue())
+    assert len(log.topics["/can"]) == rec.messages_written
+    assert log.metadata["recorder"]["dropped"] == str(rec.dropped)
+
+
+def test_bad_values_are_counted_not_fatal() -> None:
+    buffer = io.BytesIO()
+    with Recorder(buffer) as rec:
+        can = rec.add_struct_channel("/can", CAN)
+        rec.record(can, 1, _can(1))
+        rec.record(can, 2, (0.0, 1, 8, b"short"))  # 5 bytes for uint8[8]
+        rec.record(can, 3, (0.0, -1, 8, bytes(8)))  # uint32 out of range
+        rec.record(can, 4, {"bus_time_s": 0.5, "arbitration_id": 7, "dlc": 0, "data": bytes(8)})
+        rec.record(can, -5, _can(5))  # negative time
+        rec.close()
+    assert rec.rejected == 3
+    assert rec.first_rejection is not None and "/can" in rec.first_rejection
+    log = read_log(buffer.getvalue())
+    assert log.topics["/can"].log_time_ns.tolist() == [1, 4]
+    assert log.metadata["recorder"]["rejected"] == "3"
+
+
+def test_close_is_idempotent_and_later_records_are_dropped() -> None:
+    buffer = io.BytesIO()
+    rec = Recorder(buffer)
+    can = rec.add_struct_channel("/can", CAN)
+    rec.close()
+    rec.close()
+    rec.record(can, 1, _can(1))
+    assert rec.dropped == 1
+    with pytest.raises(RecorderError):
+        rec.add_struct_channel("/other", CAN)
+
+
+def test_handle_from_another_recorder_is_rejected() -> None:
+    with Recorder(io.BytesIO()) as first, Recorder(io.BytesIO()) as second:
+        foreign = first.add_struct_channel("/can", CAN)
+        second.add_struct_channel("/can", CAN)
+        second.record(foreign, 1, _can(1))
+        second.close()
+        assert second.rejected == 1
+
+
+def test_missing_directory_raises_recorder_error(tmp_path: Path) -> None:
+    path = tmp_path / "no" / "such" / "run.mcap"
+    with pytest.raises(RecorderError) as info:
+        Recorder(path)
+    assert str(path) in str(info.value)
+    assert "No such file or directory" in str(info.value)
+    assert isinstance(info.value, OSError) and info.value.errno == errno.ENOENT
+
+
+def test_path_that_is_a_directory_raises_recorder_error(tmp_path: Path) -> None:
+    with pytest.raises(RecorderError, match="Is a directory"):
+        Recorder(tmp_path)
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root can write into a read-only directory")
+def test_unwritable_directory_raises_recorder_error(tmp_path: Path) -> None:
+    tmp_path.chmod(0o500)
+    try:
+        with pytest.raises(RecorderError, match="Permission denied"):
+            Recorder(tmp_path / "run.mcap")
+    finally:
+        tmp_path.chmod(0o700)
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full")
+def test_full_disk_at_start_raises_recorder_error() -> None:
+    with pytest.raises(RecorderError) as info:
+        Recorder("/dev/full")
+    assert info.value.errno == errno.ENOSPC and "/dev/full" in str(info.value)
+
+
+class _FillingStream(io.RawIOBase):
+    """A file that runs out of space after ``capacity`` bytes, as a full disk does."""
+
+    def __init__(self, capacity: int) -> None:
+        self.capacity = capacity
+        self.data = bytearray()
+
+    def writable(self) -> bool:
+        return True
+
+    def tell(self) -> int:  # the mcap writer records offsets for its indexes
+        return len(self.data)
+
+    def write(self, b: Any) -> int:
+        if len(self.data) + len(b) > self.capacity:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        self.data += b
+        return len(b)
+
+
+def test_disk_full_mid_run_is_reported_not_silent() -> None:
+    stream = _FillingStream(capacity=20_000)
+    rec = Recorder(io.BufferedWriter(stream, 1024), flush_interval_s=0.005)
+    can = rec.add_struct_channel("/can", CAN)
+    deadline = time.monotonic() + 5
+    i = 0
+    while rec.error is None and time.monotonic() < deadline:
+        rec.record(can, i, _can(i))
+        i += 1
+        if i % 100 == 0:
+            time.sleep(0.002)
+    assert isinstance(rec.error, OSError)
+    before = rec.dropped
+    rec.record(can, i, _can(i))  # still never raises: counted
+    assert rec.dropped == before + 1
+    with pytest.raises(RecorderError, match="No space left on device") as info:
+        rec.close()
+    assert info.value.errno == errno.ENOSPC
+    rec.close()  # idempotent, even after a failure
+    # What reached the "disk" before it filled up is a readable, truncated log.
+    log = read_log(bytes(stream.data))
+    assert log.truncated
+    assert 0 < len(log.topics["/can"]) <= i
+
+
+def test_concurrent_producers_share_one_recorder() -> None:
+    buffer = io.BytesIO()
+    with Recorder(buffer) as rec:
+        handles = [rec.add_struct_channel(f"/can{k}", CAN) for k in range(3)]
+
+        def produce(k: int) -> None:
+            for i in range(2000):
+                rec.record(handles[k], i, _can(i))
+
+        threads = [threading.Thread(target=produce, args=(k,)) for k in range(3)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+        rec.close()
+    assert rec.dropped == 0
+    log = read_log(buffer.getvalue())
+    for k in range(3):
+        assert log.topics[f"/can{k}"].log_time_ns.tolist() == list(range(2000))
+
+
+_KILL_HELPER = textwrap.dedent(
+    """
+    import sys, time
+    from ballbeam.logs import Recorder, StructSchema
+
+    path, progress_path = sys.argv[1], sys.argv[2]
+    tick = StructSchema("test_msgs/msg/Tick", (("cycle", "int64"), ("value", "float64")))
+    with open(progress_path, "w", buffering=1) as progress, Recorder(
+        path, metadata={"run": {"kind": "kill test"}}, flush_interval_s=0.05
+    ) as rec:
+        handle = rec.add_struct_channel("/tick", tick)
+        print("ready", file=progress)
+        due_ns = time.monotonic_ns()
+        cycle = 0
+        while True:
+            now_ns = time.monotonic_ns()
+            rec.record(handle, now_ns, (cycle, cycle * 0.5))
+            if cycle % 5 == 0:
+                print(cycle, now_ns, file=progress)
+            cycle += 1
+            due_ns += 1_000_000
+            delay_ns = due_ns - time.monotonic_ns()
+            if delay_ns > 0:
+                time.sleep(delay_ns / 1e9)
+    """
+)
+
+
+def test_recorder_killed_mid_write_leaves_a_readable_log(tmp_path: Path) -> None:
+    helper = tmp_path / "kill_helper.py"
+    helper.write_text(_KILL_HELPER)
+    rng = random.Random(20240611)
+    for rep in range(5):
+        log_path = tmp_path / f"killed{rep}.mcap"
+        progress_path = tmp_path / f"progress{rep}.txt"
+        proc = subprocess.Popen([sys.executable, str(helper), str(log_path), str(progress_path)])
+        try:
+            deadline = time.monotonic() + 20
+            while not (progress_path.exists() and "ready" in progress_path.read_text()):
+                assert proc.poll() is None, "helper exited early"
+                assert time.monotonic() < deadline, "helper never became ready"
+                time.sleep(0.01)
+            time.sleep(rng.uniform(0.2, 0.5))
+        finally:
+            proc.send_signal(signal.SIGKILL)
+            proc.wait()
+        lines = [ln.split() for ln in progress_path.read_text().splitlines()[1:]]
+        complete = [ln for ln in lines if len(ln) == 2]
+        reported_cycle, reported_ns = int(complete[-1][0]), int(complete[-1][1])
+
+        log = read_log(log_path)
+        assert log.truncated
+        assert log.truncation_reason
+        assert log.metadata["run"] == {"kind": "kill test"}
+        tick = log.topics["/tick"]
+        cycles = tick.values["cycle"]
+        assert len(cycles) > 0
+        np.testing.assert_array_equal(cycles, np.arange(len(cycles)))  # a gapless prefix
+        np.testing.assert_array_equal(tick.values["value"], cycles * 0.5)
+        assert log.last_complete_time_ns == int(tick.log_time_ns[-1])
+        # At most about one flush interval (50 ms) lost, with slack for scheduling.
+        assert log.last_complete_time_ns >= reported_ns - 100_000_000, (
+            f"rep {rep}: lost {(reported_ns - log.last_complete_time_ns) / 1e6:.1f} ms "
+            f"(read {len(cycles)} cycles, reported {reported_cycle})"
+        )
+
+
+def test_channel_registered_mid_run() -> None:
+    """A channel added while data flows lands inside an open chunk, after its messages."""
+    buffer = io.BytesIO()
+    with Recorder(buffer, flush_interval_s=10.0) as rec:
+        can = rec.add_struct_channel("/can", CAN)
+        for i in range(50):
+            rec.record(can, i, _can(i))
+        while rec.queued:
+            time.sleep(0.001)
+        time.sleep(0.01)
+        state = rec.add_struct_channel("/state", STATE)
+        with pytest.raises(ValueError, match="already registered"):
+            rec.add_struct_channel("/can", CAN)
+        for i in range(50, 100):
+            rec.record(can, i, _can(i))
+            rec.record(state, i, _state(i))
+    log = read_log(buffer.getvalue())
+    assert log.chunk_count == 1
+    assert log.topics["/can"].log_time_ns.tolist() == list(range(100))
+    assert log.topics["/state"].values["counter"].tolist() == list(range(50, 100))
