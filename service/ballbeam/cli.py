@@ -20,6 +20,16 @@ from ballbeam.errors import BallbeamError
 EXIT_USAGE = 2
 
 
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
 def _add_config_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "config",
@@ -222,6 +232,31 @@ def command_replay(args: argparse.Namespace) -> int:
     return exit_code
 
 
+def command_regress(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from tqdm import tqdm
+
+    from ballbeam import regress
+
+    paths = regress.discover(Path(args.directory))
+    with tqdm(total=len(paths), unit="scenario", file=sys.stderr, disable=args.json) as bar:
+
+        def done(result: regress.ScenarioResult) -> None:
+            bar.set_postfix_str(f"{result.name}: {'pass' if result.passed else 'FAIL'}")
+            bar.update()
+
+        jobs = args.jobs or regress.default_jobs()
+        results = regress.run_all(paths, jobs, args.overrides, on_done=done)
+    if args.junit_xml:
+        regress.write_junit(results, Path(args.junit_xml))
+    if args.json:
+        print_json(regress.as_json(results))
+    else:
+        print(regress.table(results))
+    return 0 if all(result.passed for result in results) else 1
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="ballbeam",
@@ -261,6 +296,20 @@ def build_parser() -> argparse.ArgumentParser:
         help="re-run the controller on the recorded sensor frames; exit 1 on any difference",
     )
     replay.set_defaults(handler=command_replay)
+
+    regress_parser = commands.add_parser(
+        "regress", help="run every scenario over the bus and check its [expect] bounds"
+    )
+    regress_parser.add_argument(
+        "directory", nargs="?", default="configs/scenarios", help="default: configs/scenarios"
+    )
+    regress_parser.add_argument("--jobs", type=_positive_int, default=None,
+                                help="scenarios at once (default: one per core)")
+    regress_parser.add_argument("--set", dest="overrides", action="append", default=[],
+                                metavar="KEY=VALUE", help="override a key in every scenario")
+    regress_parser.add_argument("--json", action="store_true", help="print one JSON object")
+    regress_parser.add_argument("--junit-xml", metavar="PATH", help="write a JUnit XML report")
+    regress_parser.set_defaults(handler=command_regress)
 
     emulator = commands.add_parser("emulator", help="run the plant emulator alone")
     _add_config_arguments(emulator)

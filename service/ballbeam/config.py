@@ -16,6 +16,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from ballbeam.core.metrics import EXPECTABLE_METRICS
 from ballbeam.core.model import LinearModel, PlantConstants
 from ballbeam.errors import ConfigError
 
@@ -267,6 +268,10 @@ class Config(_Section):
                 f"limits.voltage_v = {self.limits.voltage_v}"
             )
         for metric, bound in self.expect.items():
+            if metric not in EXPECTABLE_METRICS:
+                raise ValueError(
+                    f"expect.{metric}: unknown metric; known: {', '.join(EXPECTABLE_METRICS)}"
+                )
             unknown = set(bound) - {"min", "max"}
             if unknown or not bound:
                 raise ValueError(

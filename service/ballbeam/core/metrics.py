@@ -8,6 +8,18 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 SETTLE_BAND_M = 0.002
+# Metrics a scenario may bound in its [expect] table: these and the bench's own figures.
+BENCH_FIGURES = (
+    "saturation_fraction",
+    "lateness_p50_us",
+    "lateness_p99_us",
+    "lateness_max_us",
+    "overruns",
+    "frames_lost",
+    "frames_rejected",
+    "coasted_cycles",
+    "recorder_dropped",
+)
 
 
 @dataclass(frozen=True)
@@ -61,3 +73,6 @@ def compute_metrics(
         max_abs_u_v=float(np.max(np.abs(voltage_v))),
         tracking_rms_mm=1e3 * float(np.sqrt(np.mean((position - reference_position_m) ** 2))),
     )
+
+
+EXPECTABLE_METRICS = (*RunMetrics.__dataclass_fields__, *BENCH_FIGURES)
