@@ -20,6 +20,7 @@ from ballbeam.assembly import plant_parameters, sensor_periods_per_cycle
 from ballbeam.config import Config
 from ballbeam.core.plant import PlantPhysics, initial_noise, next_noise, read_sensors
 from ballbeam.errors import FrameError
+from ballbeam.runtime.bus import recv_frame
 from ballbeam.runtime.frames import (
     SENSOR_ID,
     STATUS_HELD,
@@ -103,9 +104,21 @@ class PlantEmulator:
         )
         self.counters.samples_sent += 1
 
+    def _recv(self, timeout_s: float) -> can.Message | None:
+        """The next message within ``timeout_s``; datagrams that are no frame are counted."""
+        return recv_frame(self.bus, timeout_s, self._count_malformed)
+
+    def _count_malformed(self, _detail: str) -> None:
+        self.counters.rejected += 1
+
     def _accept_command(self, message: can.Message) -> VoltageCommand | None:
         """A valid, fresh command frame, or None (counted)."""
-        if message.arbitration_id != VOLTAGE_COMMAND_ID:
+        if (
+            message.arbitration_id != VOLTAGE_COMMAND_ID
+            or message.is_extended_id  # the contract is on standard-id data frames only
+            or message.is_remote_frame
+            or message.is_error_frame
+        ):
             self.counters.own_or_foreign += 1
             return None
         try:
@@ -150,7 +163,7 @@ class PlantEmulator:
         self._send_sample()
         last_sent = time.monotonic()
         while not stop.is_set():
-            message = self.bus.recv(timeout=resend_s)
+            message = self._recv(resend_s)
             now_ns = time.monotonic_ns()
             self._check_watchdog(now_ns)
             if message is None or (command := self._accept_command(message)) is None:
@@ -189,7 +202,7 @@ class PlantEmulator:
             next_deadline_ns = tick.deadline_ns + self.sensor_period_ns
             # Listen until just before the next deadline, applying commands as they arrive.
             while (remaining_ns := next_deadline_ns - time.monotonic_ns()) > ticker.spin_ns:
-                message = self.bus.recv(timeout=(remaining_ns - ticker.spin_ns) * 1e-9)
+                message = self._recv((remaining_ns - ticker.spin_ns) * 1e-9)
                 if message is None:
                     break
                 command = self._accept_command(message)

@@ -65,6 +65,32 @@ def _percentile_us(values_ns: np.ndarray, q: float) -> float:
     return float(np.percentile(values_ns, q)) * 1e-3 if values_ns.size else math.nan
 
 
+SENSOR_FRAME_ID = 0x101
+COMMAND_FRAME_ID = 0x100
+
+
+def sensor_to_command_latency_s(run_log: RunLog) -> np.ndarray:
+    """For each enabled command: send time minus the kernel receive time of the sensor frame
+    it answers (paired by the echoed counter, latest such frame before the send)."""
+    rx, tx = run_log.topics.get("/can/rx"), run_log.topics.get("/can/tx")
+    if rx is None or tx is None or not len(rx) or not len(tx):
+        return np.empty(0)
+    rx_values, tx_values = rx.values, tx.values
+    sensors = rx_values[rx_values["arbitration_id"] == SENSOR_FRAME_ID]
+    commands = tx_values[tx_values["arbitration_id"] == COMMAND_FRAME_ID]
+    commands = commands[(commands["data"][:, 5] & 1) == 1]
+    latencies = []
+    for counter in np.unique(commands["data"][:, 6]):
+        received = np.sort(sensors["bus_time_s"][sensors["data"][:, 2] == counter])
+        sent = commands["bus_time_s"][commands["data"][:, 6] == counter]
+        if not received.size:
+            continue
+        index = np.searchsorted(received, sent, side="right") - 1
+        valid = index >= 0
+        latencies.append(sent[valid] - received[index[valid]])
+    return np.concatenate(latencies) if latencies else np.empty(0)
+
+
 def summarise(run_log: RunLog, theta_limit_rad: float | None = None) -> dict[str, Any]:
     """One flat dict: the core metrics plus timing, frames, faults and truncation."""
     series = run_series(run_log)
@@ -87,6 +113,7 @@ def summarise(run_log: RunLog, theta_limit_rad: float | None = None) -> dict[str
     voltage_limit = voltage_limit_from_log(run_log)
     saturated = np.abs(series.voltage_v[enabled]) >= voltage_limit - SATURATION_TOLERANCE_V
     summary_meta = run_log.metadata.get("summary", {})
+    latency_ns = sensor_to_command_latency_s(run_log) * 1e9
     faults = run_log.json_topics.get("/faults")
     fault_kinds: dict[str, int] = {}
     for message in faults.messages if faults is not None else ():
@@ -103,6 +130,8 @@ def summarise(run_log: RunLog, theta_limit_rad: float | None = None) -> dict[str
         "lateness_p50_us": _percentile_us(series.lateness_ns, 50),
         "lateness_p99_us": _percentile_us(series.lateness_ns, 99),
         "lateness_max_us": _percentile_us(series.lateness_ns, 100),
+        "latency_p50_us": _percentile_us(latency_ns, 50),
+        "latency_p99_us": _percentile_us(latency_ns, 99),
         "overruns": counter("overruns"),
         "frames_lost": counter("sensor_frames_lost"),
         "frames_rejected": counter("rejected_total"),

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import ipaddress
 import secrets
+import time
+from collections.abc import Callable
 from typing import Any
 
 import can
@@ -76,6 +78,28 @@ def open_bus(bus: BusSection) -> can.BusABC:
         raise BusError(
             f"cannot open bus {bus.interface}:{bus.channel}: {error}{hint}"
         ) from error
+
+
+def recv_frame(
+    bus: can.BusABC, timeout_s: float, on_malformed: Callable[[str], None]
+) -> can.Message | None:
+    """``bus.recv``, except that noise which is not a CAN frame at all does not kill the node.
+
+    A datagram python-can cannot turn into a message (udp_multicast: not msgpack, or not a
+    valid frame) raises CanOperationError from inside ``recv``; it is reported to
+    ``on_malformed`` and skipped, and the wait goes on until ``timeout_s`` from the call.
+    Returns a message, or None when the time is up. Failures of the socket itself (an
+    OSError underneath) still raise.
+    """
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            return bus.recv(timeout=max(0.0, deadline - time.monotonic()))
+        except can.CanOperationError as error:
+            if isinstance(error.__cause__, OSError):
+                raise
+            cause = f": {error.__cause__}" if error.__cause__ is not None else ""
+            on_malformed(f"{error}{cause}")
 
 
 def socketcan_available() -> bool:

@@ -14,6 +14,7 @@ from collections import Counter
 from dataclasses import dataclass, field
 
 import can
+import numpy as np
 
 from ballbeam.config import Config
 from ballbeam.core.control import (
@@ -27,7 +28,9 @@ from ballbeam.core.plant import SensorReading
 from ballbeam.errors import BallbeamError
 from ballbeam.logs.recorder import Recorder
 from ballbeam.runtime import channels
+from ballbeam.runtime.bus import recv_frame
 from ballbeam.runtime.frames import (
+    SENSOR_ID,
     VOLTAGE_COMMAND_ID,
     CounterCheck,
     FrameContract,
@@ -42,6 +45,8 @@ from ballbeam.runtime.ticker import Ticker
 
 log = logging.getLogger("ballbeam.daemon")
 
+PHASE_PROBE_FRAMES = 20
+PHASE_PROBE_S = 0.05
 MAX_RECORDED_REJECTIONS = 1000  # per reason: beyond this only the count grows (no log floods)
 
 
@@ -145,11 +150,23 @@ class ControllerDaemon:
             self._event("/faults", f"rejected_{reason}", detail)
 
     # -- frames -------------------------------------------------------------------------------
+    def _recv(self, timeout_s: float) -> can.Message | None:
+        """The next message within ``timeout_s``; datagrams that are no frame are rejected."""
+        return recv_frame(self.bus, timeout_s, lambda detail: self._reject("malformed", detail))
+
     def _handle(self, message: can.Message) -> None:
-        if message.arbitration_id == VOLTAGE_COMMAND_ID:
+        # The contract is on standard-id data frames: an extended id that happens to have
+        # the same number, a remote frame or an error frame is someone else's.
+        foreign = message.is_extended_id or message.is_remote_frame or message.is_error_frame
+        if message.arbitration_id == VOLTAGE_COMMAND_ID and not foreign:
             self.stats.own_frames += 1  # our own command looped back by the bus
             return
         self._record_frame("/can/rx", message)
+        if foreign:
+            kind = ("extended-id" if message.is_extended_id
+                    else "remote" if message.is_remote_frame else "error")
+            self._reject("foreign", f"{kind} frame 0x{message.arbitration_id:X}")
+            return
         try:
             frame = self.contract.decode(message.arbitration_id, bytes(message.data))
         except FrameRejectedError as error:
@@ -194,7 +211,7 @@ class ControllerDaemon:
         except can.CanError as error:
             self._event("/faults", "send_failed", str(error))
             return
-        message.timestamp = self._wall_ns() * 1e-9
+        message.timestamp = time.time()  # the clock the kernel stamps received frames with
         self._record_frame("/can/tx", message)
 
     def _command(self, cycle: int, voltage_v: float, requested_v: float, enable: bool) -> None:
@@ -313,7 +330,7 @@ class ControllerDaemon:
                     f"{self.config.bus.interface}:{self.config.bus.channel}; is the emulator "
                     "running on the same bus?"
                 )
-            message = self.bus.recv(timeout=min(remaining, 0.1))
+            message = self._recv(min(remaining, 0.1))
             if message is None:
                 continue
             arrival_ns = time.monotonic_ns()
@@ -349,7 +366,7 @@ class ControllerDaemon:
                 self._cycle()
                 self._record_timing(start_ns, start_ns, 0)
                 continue
-            message = self.bus.recv(timeout=silence_s)
+            message = self._recv(silence_s)
             # Whatever arrives now belongs to the sample of the coming cycle.
             self.log_time_ns = self.wall_origin_ns + self.state.cycle * self.period_ns
             if message is None:
@@ -359,8 +376,32 @@ class ControllerDaemon:
                 return
             self._handle(message)
 
+    def _sensor_phase_ns(self, first_arrival_ns: int) -> int:
+        """Where in our period the plant's sensor frames land (monotonic ns mod period),
+        from the kernel receive stamps of a few frames: the loop then starts each cycle
+        just after a fresh frame instead of wherever the first one happened to be read."""
+        phases = [first_arrival_ns % self.period_ns]
+        give_up = time.monotonic() + PHASE_PROBE_S
+        while len(phases) < PHASE_PROBE_FRAMES and time.monotonic() < give_up:
+            message = self.bus.recv(timeout=PHASE_PROBE_S)
+            if message is None:
+                break
+            self.log_time_ns = self._wall_ns()
+            self._handle(message)
+            if message.arbitration_id == SENSOR_ID and self.fresh:
+                age_ns = time.time_ns() - int(message.timestamp * 1e9)
+                phases.append((time.monotonic_ns() - age_ns) % self.period_ns)
+        angles = np.array(phases) * (2 * math.pi / self.period_ns)
+        mean = math.atan2(float(np.sin(angles).mean()), float(np.cos(angles).mean()))
+        return int(mean % (2 * math.pi) * self.period_ns / (2 * math.pi))
+
     def _run_realtime(self, arrival_ns: int) -> None:
-        origin_ns = arrival_ns + self.config.controller.phase_offset_us * 1000
+        phase_ns = self._sensor_phase_ns(arrival_ns)
+        start_after_ns = time.monotonic_ns() + self.period_ns
+        origin_ns = (
+            start_after_ns - start_after_ns % self.period_ns + phase_ns
+            + self.config.controller.phase_offset_us * 1000
+        )
         ticker = Ticker(self.period_ns, spin_ns=self.config.controller.spin_us * 1000,
                         start_ns=origin_ns)
         self.mono_origin_ns, self.wall_origin_ns = origin_ns, self._wall_ns_at(origin_ns)
@@ -371,7 +412,7 @@ class ControllerDaemon:
                 self.stats.overruns += 1
                 self.stats.skipped_periods += tick.skipped
                 self._coast_skipped(tick.skipped)
-            while (message := self.bus.recv(timeout=0)) is not None:
+            while (message := self._recv(0.0)) is not None:
                 self._handle(message)
             self._cycle()
             self._record_timing(tick.deadline_ns, tick.start_ns, tick.skipped)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -49,7 +50,12 @@ def _stop(process: subprocess.Popen[str]) -> int:
     return process.wait()
 
 
-def launch_run(config_path: str | None, overrides: list[str]) -> LaunchResult:
+def launch_run(
+    config_path: str | None,
+    overrides: list[str],
+    on_started: Callable[[dict[str, subprocess.Popen[str]]], None] | None = None,
+) -> LaunchResult:
+    """Run one scenario; ``on_started`` gets both processes (benchmarks watch their memory)."""
     import time
 
     config = load_config(config_path, overrides)
@@ -73,6 +79,8 @@ def launch_run(config_path: str | None, overrides: list[str]) -> LaunchResult:
         [*base, "daemon", *config_args, "--log", str(log_path)],
         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
     )
+    if on_started is not None:
+        on_started({"emulator": emulator, "daemon": daemon})
     budget_s = STARTUP_ALLOWANCE_S + config.controller.start_timeout_s + (
         config.run.duration_s * (1.5 if config.run.mode == "realtime" else 20.0)
     )

@@ -1,0 +1,207 @@
+"""A bounded, paced flood of foreign traffic on one ballbeam bus: the bus-noise test's third node.
+
+    python tests/helpers/flood.py --channel ff11:... [--rate-hz 3000] [--max-frames 20000]
+        [--max-seconds 3] [--seed 0] [--wait-for-command 30]
+
+It waits (at most ``--wait-for-command`` seconds) until the controller's first *enabled*
+voltage command is on the bus, so the flood lands on a run that is cycling, then sends for at
+most ``--max-seconds`` and at most ``--max-frames`` frames, paced on absolute deadlines in
+1 ms bursts (never faster than ``--rate-hz``), and prints one JSON object: what it sent, by kind.
+
+What it sends (seeded):
+
+- ``foreign_id``: standard ids outside 0x100-0x103, any length 0-8, random bytes;
+- ``bad_crc``: our four ids, 8 random bytes whose E2E CRC is made wrong on purpose (a random
+  payload would pass the CRC-16 once in 65,536 frames: that is spoofing, not noise);
+- ``wrong_length``: our four ids with 0-7 bytes;
+- ``extended_id``: our four numeric ids as *extended* (29-bit) ids, carrying payloads whose CRC is
+  right for the standard frame of that number (a real bus keeps the two id spaces apart; so must
+  the receivers), with wild values (full-scale counts, ±5 V enabled commands);
+- ``remote_frame`` and ``error_frame``: our ids with those flags set;
+- ``raw_datagram``: UDP datagrams on the group that are not python-can frames at all (random
+  bytes; msgpack that is not a frame; a frame whose id is not a number).
+
+Interface-local groups only (ff11::, scope 1), like the bench: nothing leaves the host.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ipaddress
+import json
+import random
+import socket
+import struct
+import sys
+import time
+from collections import Counter
+
+import can
+import msgpack
+
+from ballbeam.runtime.frames import (
+    SENSOR_ID,
+    TRUTH_ANGLE_ID,
+    TRUTH_BALL_ID,
+    VOLTAGE_COMMAND_ID,
+    FrameContract,
+    e2e_profile5_crc,
+)
+
+OUR_IDS = (VOLTAGE_COMMAND_ID, SENSOR_ID, TRUTH_ANGLE_ID, TRUTH_BALL_ID)
+BURST_PERIOD_NS = 1_000_000
+KINDS = (
+    ("foreign_id", 30),
+    ("bad_crc", 30),
+    ("wrong_length", 15),
+    ("extended_id", 15),
+    ("remote_frame", 3),
+    ("error_frame", 3),
+    ("raw_datagram", 4),
+)
+
+
+def _bad_crc_payload(rng: random.Random, arbitration_id: int) -> bytes:
+    data = bytearray(rng.randbytes(8))
+    good = e2e_profile5_crc(data, arbitration_id)
+    if data[0] | data[1] << 8 == good:
+        data[0] ^= 0x01
+    return bytes(data)
+
+
+def _valid_payload(rng: random.Random, contract: FrameContract, arbitration_id: int) -> bytes:
+    counter = rng.randrange(256)
+    if arbitration_id == VOLTAGE_COMMAND_ID:
+        return contract.encode_voltage_command(counter, rng.choice((-5.0, 5.0)), True,
+                                               rng.randrange(256))
+    if arbitration_id == SENSOR_ID:
+        return contract.encode_sensor(counter, rng.choice((-32768, 32767)),
+                                      rng.choice((-32768, 32767)), 0)
+    if arbitration_id == TRUTH_ANGLE_ID:
+        return contract.encode_truth_angle(counter, rng.uniform(-5, 5), rng.uniform(-50, 50))
+    return contract.encode_truth_ball(counter, rng.uniform(-0.5, 0.5), rng.uniform(-5, 5))
+
+
+def _raw_datagram(rng: random.Random) -> bytes:
+    choice = rng.randrange(3)
+    if choice == 0:
+        return rng.randbytes(rng.randrange(1, 64))
+    if choice == 1:
+        return msgpack.packb([1, 2, 3])  # type: ignore[no-any-return]
+    return msgpack.packb(  # type: ignore[no-any-return]
+        {"timestamp": 0.0, "arbitration_id": "0x101", "is_extended_id": False,
+         "is_remote_frame": False, "is_error_frame": False, "channel": None, "dlc": 8,
+         "data": bytes(8), "is_fd": False, "bitrate_switch": False,
+         "error_state_indicator": False},
+        use_bin_type=True,
+    )
+
+
+def make_frame(
+    rng: random.Random, contract: FrameContract, kind: str
+) -> can.Message | bytes:
+    """One piece of noise of ``kind``: a CAN message, or raw datagram bytes."""
+    if kind == "raw_datagram":
+        return _raw_datagram(rng)
+    if kind == "foreign_id":
+        arbitration_id = rng.choice([i for i in range(0x800) if i not in OUR_IDS])
+        return can.Message(arbitration_id=arbitration_id, is_extended_id=False,
+                           data=rng.randbytes(rng.randrange(9)))
+    arbitration_id = rng.choice(OUR_IDS)
+    if kind == "bad_crc":
+        return can.Message(arbitration_id=arbitration_id, is_extended_id=False,
+                           data=_bad_crc_payload(rng, arbitration_id))
+    if kind == "wrong_length":
+        return can.Message(arbitration_id=arbitration_id, is_extended_id=False,
+                           data=rng.randbytes(rng.randrange(8)))
+    if kind == "extended_id":
+        return can.Message(arbitration_id=arbitration_id, is_extended_id=True,
+                           data=_valid_payload(rng, contract, arbitration_id))
+    if kind == "remote_frame":
+        return can.Message(arbitration_id=arbitration_id, is_extended_id=False,
+                           is_remote_frame=True, dlc=8)
+    if kind == "error_frame":
+        return can.Message(arbitration_id=arbitration_id, is_extended_id=False,
+                           is_error_frame=True, data=_bad_crc_payload(rng, arbitration_id))
+    raise ValueError(f"unknown kind {kind!r}")
+
+
+def _wait_for_enabled_command(bus: can.BusABC, contract: FrameContract, timeout_s: float) -> bool:
+    give_up = time.monotonic() + timeout_s
+    while (remaining := give_up - time.monotonic()) > 0:
+        try:
+            message = bus.recv(timeout=min(remaining, 0.1))
+        except can.CanOperationError:
+            continue
+        if message is None or message.arbitration_id != VOLTAGE_COMMAND_ID:
+            continue
+        try:
+            command = contract.decode(message.arbitration_id, bytes(message.data))
+        except ValueError:
+            continue
+        if getattr(command, "enable", False):
+            return True
+    return False
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--channel", required=True, help="an interface-local ff11:: group")
+    parser.add_argument("--port", type=int, default=43113)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--rate-hz", type=int, default=3000)
+    parser.add_argument("--max-frames", type=int, default=20_000)
+    parser.add_argument("--max-seconds", type=float, default=3.0)
+    parser.add_argument("--wait-for-command", type=float, default=30.0)
+    args = parser.parse_args(argv)
+    address = ipaddress.IPv6Address(args.channel)  # ValueError for anything but IPv6
+    if not address.is_multicast or address.packed[1] & 0x0F != 1:
+        parser.error(f"{args.channel} is not an interface-local (ff11::) multicast group")
+    if not (0 < args.rate_hz <= 10_000 and 0 < args.max_frames <= 20_000
+            and 0 < args.max_seconds <= 3.0 and 0 < args.wait_for_command <= 60):
+        parser.error("out of bounds: rate ≤ 10 kHz, ≤ 20k frames, ≤ 3 s, wait ≤ 60 s")
+
+    rng = random.Random(args.seed)
+    contract = FrameContract.load()
+    bus = can.Bus(interface="udp_multicast", channel=args.channel, port=args.port, hop_limit=1)
+    raw = socket.socket(socket.AF_INET6, socket.SOCK_DGRAM)
+    raw.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_HOPS, struct.pack("@I", 1))
+    sent: Counter[str] = Counter()
+    try:
+        if not _wait_for_enabled_command(bus, contract, args.wait_for_command):
+            print(json.dumps({"error": "no enabled command seen", "sent": 0}))
+            return 1
+        kinds = [kind for kind, _ in KINDS]
+        weights = [weight for _, weight in KINDS]
+        per_burst = max(1, args.rate_hz * BURST_PERIOD_NS // 1_000_000_000)
+        start_ns = due_ns = time.monotonic_ns()
+        stop_ns = start_ns + int(args.max_seconds * 1e9)
+        total = 0
+        while total < args.max_frames and due_ns < stop_ns:
+            for _ in range(min(per_burst, args.max_frames - total)):
+                kind = rng.choices(kinds, weights)[0]
+                item = make_frame(rng, contract, kind)
+                try:
+                    if isinstance(item, bytes):
+                        raw.sendto(item, (args.channel, args.port))
+                    else:
+                        bus.send(item)
+                except (OSError, can.CanError):
+                    sent["send_failed"] += 1
+                    continue
+                sent[kind] += 1
+                total += 1
+            due_ns += BURST_PERIOD_NS
+            if (sleep_ns := due_ns - time.monotonic_ns()) > 0:
+                time.sleep(sleep_ns * 1e-9)
+        elapsed_s = (time.monotonic_ns() - start_ns) * 1e-9
+    finally:
+        raw.close()
+        bus.shutdown()
+    print(json.dumps({"sent": sum(v for k, v in sent.items() if k != "send_failed"),
+                      "by_kind": dict(sent), "elapsed_s": elapsed_s}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
