@@ -153,6 +153,10 @@ class ControllerSection(_Section):
         None, gt=0, description="braking voltage the guard counts on; default V − dead zone"
     )
     spin_us: int = Field(200, ge=0, le=10_000, description="busy-wait before each deadline")
+    cpu: int | None = Field(None, ge=0, le=1023, description="pin the daemon to this CPU")
+    realtime_priority: int | None = Field(
+        None, ge=1, le=99, description="SCHED_FIFO priority for the daemon, where permitted"
+    )
 
     @property
     def period_ns(self) -> int:
@@ -185,6 +189,10 @@ class PlantSection(_Section):
     )
     lockstep_resend_ms: float = Field(
         20.0, gt=0, le=10_000, description="lock-step: resend the sample if no command came"
+    )
+    cpu: int | None = Field(None, ge=0, le=1023, description="pin the emulator to this CPU")
+    realtime_priority: int | None = Field(
+        None, ge=1, le=99, description="SCHED_FIFO priority for the emulator, where permitted"
     )
     command_loss: float = Field(0.0, ge=0, lt=1, description="fault injection: drop fraction")
     sensor_loss: float = Field(0.0, ge=0, lt=1, description="fault injection: drop fraction")

@@ -31,9 +31,9 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
-from collections.abc import Callable
 
 import numpy as np
 import scipy.signal
@@ -62,6 +62,9 @@ _LEVEL_RATIO = 4
 _WINDOW = 1.5
 # Terminal miss (row-scaled L1) still counted as reaching the origin.
 _MISS_TOL = 1e-8
+# Weight of the inputs' L1 norm next to the miss: breaks ties (clean holds) without trading
+# miss for it (a unit of input moves a scaled terminal row by far more than this).
+_TIE_WEIGHT = 1e-6
 _HIGHS_OPTIONS = {"primal_feasibility_tolerance": 1e-9, "dual_feasibility_tolerance": 1e-9}
 
 
@@ -291,14 +294,18 @@ def _solve_steps(
         # input: bounding the last sample of each fixed stretch covers holds; turns come lazily
         ends = cols[1:][np.diff(cols) > 1]
         samples = np.union1d(ends, extra)
-        out = _shooting_lp(grid, n, cols, base, lo, hi, samples, smallest, method, miss)
-        if out is None:
+        free_v = _shooting_lp(
+            grid, n, cols, base, lo, hi, samples, miss=miss, smallest=smallest, method=method
+        )
+        if free_v is None:
             return fail
         u = fixed.copy()
-        u[cols], missed = out
+        u[cols] = free_v
         states = _simulate(p, h, grid.x0, u)
         over = np.flatnonzero(np.abs(states[1:n, 0]) > grid.theta_sample_rad) + 1
         if over.size == 0:
+            # the miss of the exactly simulated end, in the LP's units
+            missed = float(np.sum(np.abs(states[-1]) / _terminal_rows(grid, n, cols)[1]))
             return _Solve(missed <= _MISS_TOL, u, states, missed)
         early = over[over <= cols[0]]
         if early.size:  # only fixed inputs reach these samples: free the inputs before them
@@ -312,6 +319,15 @@ def _solve_steps(
     return fail
 
 
+def _terminal_rows(grid: _Grid, n: int, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The terminal state's response to the free inputs v = u/U, rows scaled to a largest
+    entry of 1 (4, m), and those scales (4,): the units of the miss."""
+    T = grid.impulse[n - 1 - cols].T * grid.voltage_v
+    scale = np.max(np.abs(T), axis=1)
+    scale[scale == 0.0] = 1.0
+    return T / scale[:, None], scale
+
+
 def _shooting_lp(
     grid: _Grid,
     n: int,
@@ -320,18 +336,21 @@ def _shooting_lp(
     lo: np.ndarray,
     hi: np.ndarray,
     samples: np.ndarray,
+    *,
+    miss: bool,
     smallest: bool,
     method: str,
-    miss: bool = False,
-) -> tuple[np.ndarray, float] | None:
-    """The free inputs [V] (or None if infeasible) of the sparse multiple-shooting LP.
+) -> np.ndarray | None:
+    """The free inputs [V] of the sparse multiple-shooting LP, or None if it is infeasible.
 
     Variables: the free inputs v = u/U and, after each free step, the motor state's deviation
     from the fixed-input trajectory ``base`` (P = δθ/θ_lp, Q = δθ̇/(U/β)). Between free steps
     the deviation evolves freely, in closed form over any gap g: δθ += (1 − E^g)/a · δθ̇,
     δθ̇ *= E^g. So the angle limits at the samples after free steps are variable bounds, those
-    at ``samples`` inside fixed stretches rows of two entries, and the rest stays sparse. The
-    four terminal rows are condensed over the free inputs (exact).
+    at ``samples`` inside fixed stretches bounds on one more variable each (a row of three
+    entries), and everything stays sparse but the four terminal rows, condensed over the free
+    inputs (exact). ``miss``: minimise the terminal miss (L1, rows scaled) rather than demand
+    an exact end; ``smallest``: also minimise the inputs' L1 norm (a tie-break under ``miss``).
     """
     p, h, U = grid.p, grid.step_s, grid.voltage_v
     m = cols.size
@@ -343,14 +362,27 @@ def _shooting_lp(
     th = grid.theta_lp_rad - 2e-9 * m
     c1 = (h - phi1) * rate / th  # P after one step from rest at v = 1
     c2 = 1.0 - E  # Q after one step from rest at v = 1
+    # samples inside fixed stretches: θ_k = base_k + th (P_i + (1 − E^g)/a · rate/th · Q_i)
+    i_of = np.searchsorted(cols, samples - 1, side="right") - 1
+    keep = (i_of >= 0) & (cols[np.clip(i_of, 0, None)] + 1 < samples)
+    ks, iks = samples[keep], i_of[keep]
+    nk = ks.size
     nv = 2 * m if smallest else m
+    iP, iQ = nv + np.arange(m), nv + m + np.arange(m)
+    iS = nv + 2 * m + np.arange(nk)
+    iE = nv + 2 * m + nk + np.arange(8 if miss else 0)
+    n_var = iE[-1] + 1 if miss else nv + 2 * m + nk
     r = np.arange(m)
-    iP, iQ = nv + r, nv + m + r
+    prev = r > 0
     gap = np.diff(cols, prepend=cols[0]).astype(float)
     Eg = E**gap
-    prev = r > 0
-    # row i:     P_i − P_{i−1} − (1 − E^g)/a · rate/th · Q_{i−1} − c1 v_i = 0
-    # row m + i: Q_i − E^g Q_{i−1} − c2 v_i = 0
+    T, scale = _terminal_rows(grid, n, cols)
+    # rows: [P chain (m) | Q chain (m) | terminal (4) | samples (nk)]
+    # P_i − P_{i−1} − (1 − E^g)/a · rate/th · Q_{i−1} − c1 v_i = 0
+    # Q_i − E^g Q_{i−1} − c2 v_i = 0
+    # Σ_j T_j v_j (− e⁺ + e⁻) = −base_n / scale
+    # S − P_i − (1 − E^g)/a · rate/th · Q_i = 0
+    g = (ks - cols[iks] - 1).astype(float)
     parts = [
         (r, iP, np.ones(m)),
         (r[prev], iP[prev] - 1, -np.ones(m - 1)),
@@ -359,46 +391,28 @@ def _shooting_lp(
         (m + r, iQ, np.ones(m)),
         (m + r[prev], iQ[prev] - 1, -Eg[prev]),
         (m + r, r, np.full(m, -c2)),
+        (np.repeat(2 * m + np.arange(4), m), np.tile(r, 4), T.ravel()),
+        (2 * m + 4 + np.arange(nk), iS, np.ones(nk)),
+        (2 * m + 4 + np.arange(nk), iP[iks], -np.ones(nk)),
+        (2 * m + 4 + np.arange(nk), iQ[iks], -(1.0 - E**g) / a * rate / th),
     ]
     if smallest:  # v = v⁺ − v⁻
-        parts += [(r, m + r, np.full(m, c1)), (m + r, m + r, np.full(m, c2))]
+        parts += [
+            (r, m + r, np.full(m, c1)),
+            (m + r, m + r, np.full(m, c2)),
+            (np.repeat(2 * m + np.arange(4), m), np.tile(m + r, 4), -T.ravel()),
+        ]
+    if miss:
+        parts += [
+            (2 * m + np.arange(4), iE[:4], -np.ones(4)),
+            (2 * m + np.arange(4), iE[4:], np.ones(4)),
+        ]
     R, C, V = (np.concatenate(z) for z in zip(*parts, strict=True))
-    n_var = nv + 2 * m
-    dyn = scipy.sparse.csr_array((V, (R, C)), shape=(2 * m, n_var))
-    T = grid.impulse[n - 1 - cols].T * U  # (4, m): terminal response to v
-    scale = np.max(np.abs(T), axis=1)
-    scale[scale == 0.0] = 1.0
-    T = T / scale[:, None]
-    term = np.hstack([T, -T, np.zeros((4, 2 * m))] if smallest else [T, np.zeros((4, 2 * m))])
-    if miss:  # terminal miss e⁺ − e⁻ as 8 more variables at the end
-        term = np.hstack([term, -np.eye(4), np.eye(4)])
-        dyn = scipy.sparse.hstack([dyn, scipy.sparse.csr_array((2 * m, 8))])
-    A_eq = scipy.sparse.vstack([dyn, scipy.sparse.csr_array(term)]).tocsc()
-    b_eq = np.concatenate([np.zeros(2 * m), -base[-1] / scale])
-    # angle rows at samples inside fixed stretches: θ_k = base_k + th P_i + (1 − E^g)/a rate Q_i
-    i = np.searchsorted(cols, samples - 1, side="right") - 1
-    keep = (i >= 0) & (cols[np.clip(i, 0, None)] + 1 < samples)
-    k, i = samples[keep], i[keep]
-    A_ub = b_ub = None
-    if k.size:
-        g = (k - cols[i] - 1).astype(float)
-        q = (1.0 - E**g) / a * rate / th
-        rr = np.arange(k.size)
-        one = scipy.sparse.csr_array(
-            (
-                np.concatenate([np.ones(k.size), q]),
-                (np.tile(rr, 2), np.concatenate([iP[i], iQ[i]])),
-            ),
-            shape=(k.size, n_var),
-        )
-        A_ub = scipy.sparse.vstack([one, -one]).tocsc()
-        b_ub = np.concatenate([(th - base[k, 0]) / th, (th + base[k, 0]) / th])
-    n_all = n_var + (8 if miss else 0)
-    if A_ub is not None and miss:
-        A_ub = scipy.sparse.hstack([A_ub, scipy.sparse.csr_array((A_ub.shape[0], 8))]).tocsc()
+    A_eq = scipy.sparse.csc_array((V, (R, C)), shape=(2 * m + 4 + nk, n_var))
+    b_eq = np.zeros(2 * m + 4 + nk)
+    b_eq[2 * m : 2 * m + 4] = -base[-1] / scale
+    bounds = np.empty((n_var, 2))
     v_lo, v_hi = lo[cols] / U, hi[cols] / U
-    bounds = np.empty((n_all, 2))
-    bounds[n_var:] = (0.0, np.inf)
     if smallest:
         bounds[:m] = np.column_stack([np.maximum(v_lo, 0.0), np.maximum(v_hi, 0.0)])
         bounds[m:nv] = np.column_stack([np.maximum(-v_hi, 0.0), np.maximum(-v_lo, 0.0)])
@@ -409,25 +423,20 @@ def _shooting_lp(
     bounds[iP, 0] = np.where(inner, (-th - base[after, 0]) / th, -np.inf)
     bounds[iP, 1] = np.where(inner, (th - base[after, 0]) / th, np.inf)
     bounds[iQ] = (-np.inf, np.inf)
-    cost = np.zeros(n_all)
-    # exact end: the L1-smallest inputs; missed end: the smallest miss, then (a little) L1
-    cost[:nv] = (1e-7 / m if miss else 1.0) if smallest else 0.0
-    cost[n_var:] = 1.0
+    bounds[iS, 0] = (-th - base[ks, 0]) / th
+    bounds[iS, 1] = (th - base[ks, 0]) / th
+    bounds[iE] = (0.0, np.inf)
+    cost = np.zeros(n_var)
+    if smallest:
+        cost[:nv] = _TIE_WEIGHT if miss else 1.0
+    cost[iE] = 1.0
     res = _linprog(
-        c=cost,
-        A_ub=A_ub,
-        b_ub=b_ub,
-        A_eq=A_eq,
-        b_eq=b_eq,
-        bounds=bounds,
-        method=method,
-        options=_HIGHS_OPTIONS,
+        c=cost, A_eq=A_eq, b_eq=b_eq, bounds=bounds, method=method, options=_HIGHS_OPTIONS
     )
     if res.status != 0:
         return None
     v = res.x[:m] - res.x[m:nv] if smallest else res.x[:m]
-    missed = float(np.sum(res.x[n_var:]))
-    return np.asarray(np.clip(v * U, lo[cols], hi[cols]), dtype=float), missed
+    return np.asarray(np.clip(v * U, lo[cols], hi[cols]), dtype=float)
 
 
 @dataclass(frozen=True)
@@ -444,26 +453,30 @@ class _Found:
 def _min_steps(
     attempt: Callable[[int], _Solve], n_start: int, slope: float | None, n_max: int
 ) -> _Found | None:
-    """Smallest n with ``attempt(n).feasible``, by secant steps on the miss from below.
+    """Smallest n ≤ n_max with ``attempt(n).feasible``: safeguarded secant steps on the miss.
 
-    The miss falls smoothly and convexly to zero as n approaches the minimum (checked on the
-    paper's case: within 6 % of linear over the last 20 % of the range), so a secant through
-    the two largest infeasible counts lands on or just below the minimum; the search ends when
-    n is feasible and n − 1 has been tried and is not.
+    The miss falls smoothly and convexly to zero as n approaches the minimum (on the paper's
+    case within 6 % of linear over the last 20 % of the range), so the secant through the two
+    largest infeasible counts lands on or just below the minimum. Safeguards: a secant step
+    that stays infeasible doubles the next step; once bracketed, a secant step that fails is
+    followed by bisection. Ends when n is feasible and n − 1 is not (both tried).
     """
     tried: dict[int, _Solve] = {}
     lo, hi = 0, n_max + 1  # lo: largest infeasible count tried (0: none); hi: smallest feasible
     n = min(max(n_start, 1), n_max)
-    gallop = 1
+    gallop, last_step, secant_failed = 1, 0, False
     for _ in range(64):
         sol = tried[n] = attempt(n)
         if sol.feasible:
-            hi = n
+            hi = min(hi, n)
         else:
+            secant_failed = last_step > 0 and n > lo
             lo = max(lo, n)
-        if hi - lo == 1 and lo in tried:
-            below = tried[lo]
-            return _Found(hi, tried[hi], below, lo + below.miss / max(slope or 1.0, 1e-12), slope or 0.0)
+        if hi - lo == 1 and (lo in tried or lo == 0):
+            below = tried.get(lo, tried[hi])
+            root = lo + min(1.0, below.miss / slope) if lo in tried and slope else lo + 0.5
+            out_slope = slope or (2.0 * below.miss if lo in tried else 0.0)
+            return _Found(hi, tried[hi], below, root, out_slope)
         if lo >= n_max:
             return None
         failed = sorted(k for k, v in tried.items() if not v.feasible)
@@ -475,10 +488,14 @@ def _min_steps(
         if lo == 0:  # nothing infeasible yet: walk down from the feasible count
             n = max(1, hi - gallop)
             gallop *= 2
+            last_step = 0
             continue
-        step = tried[lo].miss / slope if slope else max(2.0, 0.2 * lo)
-        n = lo + max(1, math.ceil(step - 1e-9))
-        n = min(n, hi - 1, n_max)
+        step = math.ceil(tried[lo].miss / slope - 1e-9) if slope else max(2, lo // 5)
+        step = max(step, 1, 2 * last_step if secant_failed else 0)
+        if hi <= n_max and (secant_failed or lo + step >= hi or not slope):
+            n, last_step = (lo + hi) // 2, 0
+        else:
+            n, last_step = min(lo + step, n_max), step
     return None
 
 
@@ -492,6 +509,16 @@ class _Reference:
     @property
     def duration_s(self) -> float:
         return self.step_s * self.input_v.shape[0]
+
+
+def _reference(level: _Grid, sol: _Solve) -> _Reference:
+    """The shape to refine: ``sol``'s inputs with its holds set to 0. On a grid, an arc along
+    the angle limit may ring (inputs alternating in sign with the samples pinned at the limit:
+    the sampled bound allows it); its continuous counterpart is u = 0 at θ̇ = 0."""
+    theta = sol.states[:, 0]
+    pinned = np.abs(theta) >= level.theta_lp_rad * (1.0 - 1e-6)
+    hold = pinned[:-1] & pinned[1:] & (np.sign(theta[:-1]) == np.sign(theta[1:]))
+    return _Reference(level.step_s, np.where(hold, 0.0, sol.input_v))
 
 
 def _window_mask(ref: _Reference, n: int, step_s: float, window_s: float) -> np.ndarray:
@@ -625,28 +652,56 @@ def plan_time_optimal(
     n, sol = found
     verified = False
     if verify_minimal:
-        whole = _solve_steps(grid, n - 1, np.ones(n - 1, bool), np.zeros(n - 1), smallest=False)
+        whole = _solve_steps(
+            grid, n - 1, np.ones(n - 1, bool), np.zeros(n - 1), smallest=False, method="highs-ipm"
+        )
         if whole.feasible:  # the windows were too narrow: finish on the whole problem
-            better = _full_search(grid, int(t_lo / step_s), n - 1)
-            assert better is not None
-            n, sol = better
+            better = _whole_search(grid, t_lo, n - 1)
+            if better is not None:
+                n, sol = better
         verified = True
     return _plan(grid, sol.input_v, verified=verified)
 
 
+_Attempt = Callable[[int], _Solve]  # steps -> closest approach to the origin
+
+
+def _whole(level: _Grid) -> _Attempt:
+    """Attempts on the whole problem: every input free."""
+
+    def attempt(n: int) -> _Solve:
+        return _solve_steps(level, n, np.ones(n, bool), np.zeros(n), miss=True)
+
+    return attempt
+
+
+def _windowed(level: _Grid, ref: _Reference, window_s: float) -> _Attempt:
+    """Attempts with the inputs fixed to ``ref`` except within ``window_s`` of its switches."""
+
+    def attempt(n: int) -> _Solve:
+        h = level.step_s
+        mask, fixed = _window_mask(ref, n, h, window_s), _fixed_inputs(ref, n, h)
+        return _solve_steps(level, n, mask, fixed, miss=True)
+
+    return attempt
+
+
 def _search(grid: _Grid, t_lo: float, n_max: int) -> tuple[int, _Solve] | None:
-    """Minimal step count: the whole problem on a coarse grid of about ``_COARSE_STEPS`` steps,
-    then on grids ``_LEVEL_RATIO`` times finer in turn, each with the inputs fixed to the
-    previous answer's bang and hold arcs except in windows around its switches."""
+    """Minimal step count and clean inputs: the whole problem on a coarse grid of at most
+    ``_COARSE_STEPS`` steps over the lower bound ``t_lo``, then on grids ``_LEVEL_RATIO`` times
+    finer in turn, each with the inputs fixed to the coarser grid's time-optimal shape (bang
+    arcs at ±U, holds at 0: its closest attempt one step short, which has no slack to spend)
+    except in windows around its switches."""
     h = grid.step_s
     multiples = [1]
     while multiples[-1] * _LEVEL_RATIO * h * _COARSE_STEPS <= t_lo:
         multiples.append(multiples[-1] * _LEVEL_RATIO)
-    # the coarser grids only guess the structure: they keep the fine grid's sample bound
+    # the coarser grids only guess the shape: they keep the fine grid's sample bound
     delta = grid.angle_max_rad - grid.theta_sample_rad
     accel = delta * 8.0 / (h * h)
-    found: tuple[int, _Solve] | None = None
-    ref: _Reference | None = None
+    found: _Found | None = None
+    prev: _Grid | None = None
+    attempt: _Attempt | None = None
     for m in reversed(multiples):
         level = (
             grid
@@ -657,18 +712,30 @@ def _search(grid: _Grid, t_lo: float, n_max: int) -> tuple[int, _Solve] | None:
         )
         if level is None:
             break
-        if ref is None:
-            found = _full_search(level, int(t_lo / level.step_s), n_max // m)
+        if found is None or prev is None:
+            attempt = _whole(level)
+            found = _min_steps(attempt, math.floor(t_lo / level.step_s), None, n_max // m)
         else:
-            found = _refine(level, ref, _WINDOW * ref.step_s)
-            if found is None:
-                found = _refine(level, ref, 4.0 * _WINDOW * ref.step_s)
+            ratio = prev.step_s / level.step_s
+            ref = _reference(prev, found.below)
+            attempt = _windowed(level, ref, _WINDOW * prev.step_s)
+            start = math.floor(found.root * ratio)
+            # terminal rows are scaled by one step's effect (∝ step): the slope carries over
+            found = _min_steps(attempt, start, found.slope, n_max // m)
         if found is None:
             break
-        ref = _Reference(level.step_s, found[1].input_v, found[1].states[:, 0])
+        prev = level
     else:
-        return found
-    return _full_search(grid, int(t_lo / h), n_max)  # unusual start: no shortcut
+        if found is not None and attempt is not None:
+            return found.n, found.solution
+    return _whole_search(grid, t_lo, n_max)  # unusual start: no shortcut
+
+
+def _whole_search(grid: _Grid, t_lo: float, n_max: int) -> tuple[int, _Solve] | None:
+    """The step-count search on the whole fine problem (slow for long horizons)."""
+    attempt = _whole(grid)
+    found = _min_steps(attempt, math.floor(t_lo / grid.step_s), None, n_max)
+    return None if found is None else (found.n, found.solution)
 
 
 def _too_long(max_duration_s: float, x0: np.ndarray) -> PlanningError:

@@ -1,0 +1,291 @@
+"""ballbeam benchmarks: how fast, how steady, how close to the limit. Prints a table and JSON.
+
+    .venv/bin/python bench/bench.py            # everything (about 25 minutes)
+    .venv/bin/python bench/bench.py --quick    # short runs (about 3 minutes)
+    .venv/bin/python bench/bench.py --only plan,replay --json bench.json
+
+Needs the test extras (``pip install -e '.[test]'``) for the Ruckig comparison. Figures are
+measured side by side in one run; the machine is shared, so read ratios and percentiles.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ballbeam.analysis import summarise
+from ballbeam.assembly import controller_design, make_plan, run_offline
+from ballbeam.config import load_config
+from ballbeam.logs.reader import read_log
+from ballbeam.runtime.launcher import launch_run
+
+REPO = Path(__file__).resolve().parents[1]
+PAPER = str(REPO / "configs" / "paper.toml")
+PATHS = {
+    "bang_bang": str(REPO / "configs" / "paths" / "bang_bang.toml"),
+    "rate_limited_9325": str(REPO / "configs" / "paths" / "rate_limited_9325.toml"),
+    "rate_limited_8": str(REPO / "configs" / "paths" / "rate_limited_8.toml"),
+    "time_optimal": str(REPO / "configs" / "paths" / "time_optimal.toml"),
+}
+
+
+class MemoryWatch:
+    """Samples the children's resident memory (VmRSS) until they exit."""
+
+    def __init__(self) -> None:
+        self.samples: dict[str, list[tuple[float, int]]] = {}
+        self._threads: list[threading.Thread] = []
+
+    def __call__(self, processes: dict[str, subprocess.Popen[str]]) -> None:
+        for name, process in processes.items():
+            series: list[tuple[float, int]] = []
+            self.samples[name] = series
+            thread = threading.Thread(target=self._poll, args=(process, series), daemon=True)
+            thread.start()
+            self._threads.append(thread)
+
+    @staticmethod
+    def _poll(process: subprocess.Popen[str], series: list[tuple[float, int]]) -> None:
+        started = time.monotonic()
+        status = Path(f"/proc/{process.pid}/status")
+        while process.poll() is None:
+            try:
+                for line in status.read_text().splitlines():
+                    if line.startswith("VmRSS:"):
+                        series.append((time.monotonic() - started, int(line.split()[1])))
+            except OSError:
+                break
+            time.sleep(0.5)
+
+    def report(self) -> dict[str, dict[str, float]]:
+        result = {}
+        for name, series in self.samples.items():
+            if len(series) < 4:
+                continue
+            kib = np.array([value for _, value in series], dtype=float)
+            quarter = max(1, len(kib) // 4)
+            result[name] = {
+                "peak_rss_mib": float(kib.max() / 1024),
+                "rss_first_quarter_mib": float(kib[quarter: 2 * quarter].mean() / 1024),
+                "rss_last_quarter_mib": float(kib[-quarter:].mean() / 1024),
+            }
+        return result
+
+
+def bus_run(config: str, *overrides: str, memory: MemoryWatch | None = None) -> dict[str, Any]:
+    with tempfile.TemporaryDirectory() as log_dir:
+        result = launch_run(config, [f"run.log_dir='{log_dir}'", *overrides], on_started=memory)
+        summary = summarise(read_log(result.log_path), result.config.limits.theta_rad)
+        run_log = read_log(result.log_path, topics=["/timing"])
+        timing = run_log.topics["/timing"].values
+        loop_s = (int(timing["end_ns"][-1]) - int(timing["start_ns"][0])) * 1e-9
+        summary["loop_wall_s"] = loop_s
+        summary["wall_time_s"] = result.wall_time_s
+        lateness = np.asarray(timing["lateness_ns"], dtype=float) * 1e-3
+        summary["lateness_p999_us"] = float(np.percentile(lateness, 99.9))
+    return summary
+
+
+# -- 1. real-time loop ---------------------------------------------------------------------------
+REALTIME_VARIANTS: dict[str, tuple[str, ...]] = {
+    "sleep only": ("controller.spin_us=0",),
+    "sleep + spin 200 µs": ("controller.spin_us=200",),
+    "spin + CPU affinity": ("controller.spin_us=200", "controller.cpu=1", "plant.cpu=0"),
+    "spin + affinity + SCHED_FIFO": (
+        "controller.spin_us=200", "controller.cpu=1", "plant.cpu=0",
+        "controller.realtime_priority=50", "plant.realtime_priority=40",
+    ),
+}
+
+
+def bench_realtime(duration_s: float) -> list[dict[str, Any]]:
+    rows = []
+    for rate_hz in (1000, 2000):
+        for variant, overrides in REALTIME_VARIANTS.items():
+            summary = bus_run(
+                PAPER, "run.mode='realtime'", f"run.duration_s={duration_s}",
+                f"controller.rate_hz={rate_hz}", f"plant.sensor_rate_hz={rate_hz}", *overrides,
+            )
+            rows.append({
+                "rate_hz": rate_hz,
+                "variant": variant,
+                "cycles": summary["cycles"],
+                "lateness_p50_us": summary["lateness_p50_us"],
+                "lateness_p99_us": summary["lateness_p99_us"],
+                "lateness_p999_us": summary["lateness_p999_us"],
+                "lateness_max_us": summary["lateness_max_us"],
+                "overruns": summary["overruns"],
+                "latency_p50_us": summary["latency_p50_us"],
+                "latency_p99_us": summary["latency_p99_us"],
+                "coasted_cycles": summary["coasted_cycles"],
+                "settle_time_s": summary["settle_time_s"],
+            })
+            print(f"  realtime {rate_hz} Hz, {variant}: p99 {summary['lateness_p99_us']:.1f} µs,"
+                  f" overruns {summary['overruns']}", file=sys.stderr)
+    return rows
+
+
+# -- 2. lock-step speed --------------------------------------------------------------------------
+def bench_lockstep(duration_s: float) -> dict[str, Any]:
+    summary = bus_run(PAPER, f"run.duration_s={duration_s}")
+    simulated_s = summary["cycles"] * 1e-3
+    return {
+        "simulated_s": simulated_s,
+        "loop_wall_s": summary["loop_wall_s"],
+        "speed_x_realtime": simulated_s / summary["loop_wall_s"],
+        "process_wall_s": summary["wall_time_s"],
+    }
+
+
+# -- 3. plan + synthesis -------------------------------------------------------------------------
+def _median_s(action: Callable[[], object], repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        started = time.perf_counter()
+        action()
+        times.append(time.perf_counter() - started)
+    return statistics.median(times)
+
+
+def bench_plan(repeats: int) -> dict[str, Any]:
+    import ruckig
+
+    from ballbeam.core.planning.rate_limited import solve_jerk_profile
+
+    rows: dict[str, Any] = {}
+    for name, path in PATHS.items():
+        config = load_config(path, ["tracker.horizon_s=8"])
+        plan = make_plan(config)
+        rows[name] = {
+            "duration_s": plan.duration_s,
+            "plan_ms": 1e3 * _median_s(lambda config=config: make_plan(config), repeats),
+            "plan_plus_synthesis_ms": 1e3 * _median_s(
+                lambda config=config: controller_design(config), repeats
+            ),
+        }
+    # Rate-limited planner against Ruckig on the same inputs (paper start, both slopes).
+    constants = load_config(PAPER).constants()
+    acceleration_max = abs(constants.gamma) * math.radians(52)
+    start_accel = constants.gamma * math.radians(-52)
+    for slope in (9.325, 8.0):
+        jerk_max = abs(constants.gamma) * slope
+
+        def ours(jerk_max: float = jerk_max) -> object:
+            return solve_jerk_profile(0.195, 0.0, start_accel, acceleration_max, jerk_max)
+
+        def theirs(jerk_max: float = jerk_max) -> float:
+            generator = ruckig.Ruckig(1)
+            params = ruckig.InputParameter(1)
+            params.current_position, params.current_velocity = [0.195], [0.0]
+            params.current_acceleration = [start_accel]
+            params.target_position, params.target_velocity = [0.0], [0.0]
+            params.target_acceleration = [0.0]
+            params.max_velocity, params.max_acceleration = [1e3], [acceleration_max]
+            params.max_jerk = [jerk_max]
+            trajectory = ruckig.Trajectory(1)
+            generator.calculate(params, trajectory)
+            return float(trajectory.duration)
+
+        rows[f"rate_limited_vs_ruckig_{slope}"] = {
+            "ours_duration_s": ours().duration_s,  # type: ignore[attr-defined]
+            "ruckig_duration_s": theirs(),
+            "ours_us": 1e6 * _median_s(ours, repeats * 10),
+            "ruckig_us": 1e6 * _median_s(theirs, repeats * 10),
+        }
+    return rows
+
+
+# -- 4. replay -----------------------------------------------------------------------------------
+def bench_replay(duration_s: float) -> dict[str, Any]:
+    with tempfile.TemporaryDirectory() as log_dir:
+        result = launch_run(PAPER, [f"run.log_dir='{log_dir}'", f"run.duration_s={duration_s}"])
+        size_mb = result.log_path.stat().st_size / 1e6
+        started = time.perf_counter()
+        run_log = read_log(result.log_path)
+        read_s = time.perf_counter() - started
+        summarise(run_log)
+        total_s = time.perf_counter() - started
+        started = time.perf_counter()
+        from ballbeam.replay import verify
+
+        verified = verify(run_log)
+        verify_s = time.perf_counter() - started
+    return {
+        "run_duration_s": duration_s,
+        "file_mb": size_mb,
+        "messages": run_log.message_count,
+        "read_s": read_s,
+        "analyse_s": total_s,
+        "messages_per_s": run_log.message_count / read_s,
+        "verify_s": verify_s,
+        "verify_ok": verified.ok,
+    }
+
+
+# -- 5. control quality against the physical limit -----------------------------------------------
+def bench_quality() -> dict[str, Any]:
+    limit_config = load_config(PAPER, ["plan.kind='time_optimal'", "plan.voltage_margin_v=0",
+                                       "plan.theta_margin_deg=0"])
+    minimum_time_s = make_plan(limit_config).duration_s
+    rows: dict[str, Any] = {"true_minimum_time_s": minimum_time_s}
+    for name, path in PATHS.items():
+        offline = run_offline(load_config(path)).metrics.settle_time_s
+        over_bus = bus_run(path)["settle_time_s"]
+        rows[name] = {
+            "offline_settle_s": offline,
+            "bus_settle_s": over_bus,
+            "offline_ratio": offline / minimum_time_s if offline else None,
+            "bus_ratio": over_bus / minimum_time_s if over_bus else None,
+        }
+    return rows
+
+
+# -- 6. memory -----------------------------------------------------------------------------------
+def bench_memory(duration_s: float) -> dict[str, Any]:
+    memory = MemoryWatch()
+    bus_run(PAPER, "run.mode='realtime'", f"run.duration_s={duration_s}", memory=memory)
+    return {"duration_s": duration_s, **memory.report()}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="short runs")
+    parser.add_argument("--only", default="realtime,lockstep,plan,replay,quality,memory")
+    parser.add_argument("--json", metavar="PATH", help="also write the figures as JSON")
+    args = parser.parse_args()
+    quick = args.quick
+    selected = set(args.only.split(","))
+    figures: dict[str, Any] = {}
+    steps: list[tuple[str, Callable[[], Any]]] = [
+        ("plan", lambda: bench_plan(5 if quick else 20)),
+        ("lockstep", lambda: bench_lockstep(10.0 if quick else 60.0)),
+        ("quality", bench_quality),
+        ("replay", lambda: bench_replay(60.0 if quick else 600.0)),
+        ("realtime", lambda: bench_realtime(10.0 if quick else 60.0)),
+        ("memory", lambda: bench_memory(60.0 if quick else 600.0)),
+    ]
+    for name, step in steps:
+        if name in selected:
+            print(f"bench: {name} ...", file=sys.stderr)
+            figures[name] = step()
+    text = json.dumps(figures, indent=2, default=float)
+    print(text)
+    if args.json:
+        Path(args.json).write_text(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1056 @@
+"""Faults on the real bench: the plant is kept safe and no recorded data is lost.
+
+Every test here starts its own processes on its own interface-local bus group (``ff11::``, made
+private by :func:`isolated_group`), so tests never hear each other, and every one of them is
+bounded in count and in time. The test process itself joins the group as a listening node
+(:class:`BusWatch`): it sees what the emulator and the daemon put on the bus, with the kernel's
+receive time stamps, which is how a kill is timed and how the plant's side is observed.
+
+The path is the rate-limited one (``plan.kind``): what is under test is the runtime, and the
+rate-limited planner is the stable, Ruckig-checked one.
+
+What the bus faults can and cannot show:
+
+- Sensor frame loss is visible to the controller (the rolling counter: ``sensor_frames_lost``,
+  coasted cycles). Command frame loss is not, by design: the sensor frame carries no command
+  acknowledgement, and a real-time plant simply holds the last voltage (a DAC) for another
+  period. Its effect is observable as the emulator's own count of dropped commands, as the
+  absence of watchdog trips (the status bit recorded on ``/sensor``) and as the settle time.
+- A foreign frame that carries a *valid* E2E CRC for one of our standard ids is spoofing, which
+  a CRC-16 does not defend against; the flood therefore makes its bad CRCs bad on purpose.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import math
+import os
+import pickle
+import random
+import re
+import secrets
+import signal
+import statistics
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from mcap.writer import CompressionType, Writer
+
+from ballbeam import cli
+from ballbeam.analysis import summarise
+from ballbeam.config import DEFAULT_BUS_GROUP, BusSection, Config, load_config
+from ballbeam.logs.reader import RunLog, read_log
+from ballbeam.replay import verify
+from ballbeam.runtime import channels
+from ballbeam.runtime.bus import isolated_group, open_bus, recv_frame
+from ballbeam.runtime.frames import (
+    SENSOR_ID,
+    STATUS_WATCHDOG,
+    TRUTH_ANGLE_ID,
+    VOLTAGE_COMMAND_ID,
+    FrameContract,
+    SensorFrame,
+    TruthAngle,
+    VoltageCommand,
+)
+
+from .conftest import CONFIGS, REPO
+
+pytestmark = pytest.mark.bus
+
+PAPER = CONFIGS / "paper.toml"
+PLAN = "plan.kind='rate_limited'"
+FLOOD = Path(__file__).resolve().parent / "helpers" / "flood.py"
+CONTRACT = FrameContract.load()
+DEFAULTS = load_config(PAPER, [PLAN])
+PERIOD_NS = DEFAULTS.controller.period_ns
+TIMEOUT_PERIODS = DEFAULTS.controller.sensor_timeout_periods
+WATCHDOG_MS = DEFAULTS.plant.watchdog_ms
+SETTLE_TOLERANCE_S = 0.3
+START_TIMEOUT_S = 60.0  # process start, planning and synthesis, on a busy machine
+# Every test's own figures, printed at the end of a test (pytest -s shows them).
+FIGURES: dict[str, Any] = {}
+
+
+def figure(name: str, value: Any) -> None:
+    FIGURES[name] = value
+    print(f"  figure {name}: {value}")
+
+
+# ---- processes ----------------------------------------------------------------------------
+
+
+def ballbeam_argv(*args: str) -> list[str]:
+    return [sys.executable, "-m", "ballbeam", *args]
+
+
+def set_args(overrides: list[str]) -> list[str]:
+    return [item for override in overrides for item in ("--set", override)]
+
+
+def ballbeam(*args: str, timeout_s: float = 120) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(ballbeam_argv(*args), capture_output=True, text=True,
+                          timeout=timeout_s, check=False, cwd=REPO)
+
+
+# Raises the file-size limit's error (EFBIG) instead of killing the process with SIGXFSZ, the
+# way a full disk fails a write; a wrapper rather than preexec_fn, which is unsafe with threads.
+FSIZE_WRAPPER = (
+    "import os, resource, signal, sys; limit = int(sys.argv[1]); "
+    "resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit)); "
+    "signal.signal(signal.SIGXFSZ, signal.SIG_IGN); "
+    "os.execv(sys.executable, [sys.executable, '-m', 'ballbeam', *sys.argv[2:]])"
+)
+
+
+@dataclass
+class Heard:
+    """One frame as the test's own node heard it; ``time_ns``: kernel receive time (wall)."""
+
+    time_ns: int
+    arbitration_id: int
+    is_extended_id: bool
+    data: bytes
+
+
+class BusWatch:
+    """The test's node on a bench's private group: a thread that keeps every frame it hears."""
+
+    def __init__(self, group: str) -> None:
+        self.bus = open_bus(BusSection(channel=group))
+        self.frames: list[Heard] = []
+        self.malformed = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="bus watch", daemon=True)
+        self._thread.start()
+
+    def _count_malformed(self, _detail: str) -> None:
+        self.malformed += 1
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            message = recv_frame(self.bus, 0.05, self._count_malformed)
+            if message is not None:
+                self.frames.append(Heard(round(message.timestamp * 1e9), message.arbitration_id,
+                                         message.is_extended_id, bytes(message.data)))
+
+    def wait_for(self, predicate: Callable[[Heard], bool], timeout_s: float) -> Heard | None:
+        """The first frame (heard so far or within ``timeout_s``) that satisfies ``predicate``."""
+        give_up = time.monotonic() + timeout_s
+        seen = 0
+        while True:
+            frames = self.frames
+            for index in range(seen, len(frames)):
+                if predicate(frames[index]):
+                    return frames[index]
+            seen = len(frames)
+            if time.monotonic() > give_up:
+                return None
+            time.sleep(0.002)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+        self.bus.shutdown()
+
+
+def decoded(heard: Heard) -> object | None:
+    if heard.is_extended_id:
+        return None
+    try:
+        return CONTRACT.decode(heard.arbitration_id, heard.data)
+    except ValueError:
+        return None
+
+
+def is_enabled_command(heard: Heard) -> bool:
+    command = decoded(heard) if heard.arbitration_id == VOLTAGE_COMMAND_ID else None
+    return isinstance(command, VoltageCommand) and command.enable
+
+
+def commands_heard(frames: list[Heard]) -> list[tuple[int, int, VoltageCommand]]:
+    """Distinct voltage commands in the order sent: (running index, time_ns, command).
+
+    The running index unwraps the 8-bit counter (a lock-step resend repeats a counter and is
+    left out), so index i is the daemon's i-th command, i.e. row i of its /command channel.
+    """
+    out: list[tuple[int, int, VoltageCommand]] = []
+    index = -1
+    for heard in frames:
+        if heard.arbitration_id != VOLTAGE_COMMAND_ID:
+            continue
+        command = decoded(heard)
+        if not isinstance(command, VoltageCommand):
+            continue
+        if index < 0:
+            index = command.counter
+        else:
+            delta = (command.counter - index) % 256
+            if delta == 0 or delta >= 128:
+                continue  # a resend, or older than the last
+            index += delta
+        out.append((index, heard.time_ns, command))
+    return out
+
+
+def emulator_counters(stderr: str) -> dict[str, int]:
+    match = re.search(r"EmulatorCounters\((.*?)\)", stderr)
+    assert match is not None, f"the emulator did not report its counters:\n{stderr[-2000:]}"
+    return {key: int(value) for key, value in re.findall(r"(\w+)=(\d+)", match.group(1))}
+
+
+def watchdog_trips_ms(stderr: str) -> list[float]:
+    return [float(value) for value in
+            re.findall(r"watchdog: no valid command for ([0-9.]+) ms, voltage zeroed", stderr)]
+
+
+class Bench:
+    """An emulator and a daemon on a private group, started and ended by the test itself."""
+
+    def __init__(self, tmp: Path, mode: str, duration_s: float, *extra: str,
+                 watch: bool = True, file_size_limit: int | None = None) -> None:
+        tmp.mkdir(parents=True, exist_ok=True)
+        self.tmp = tmp
+        self.group = isolated_group(DEFAULT_BUS_GROUP)
+        self.overrides = [PLAN, f"run.mode='{mode}'", f"run.duration_s={duration_s}",
+                          f"bus.channel='{self.group}'", f"run.log_dir='{tmp}'", *extra]
+        self.config = load_config(PAPER, self.overrides)
+        self.log_path = tmp / f"{mode}-{secrets.token_hex(4)}.mcap"
+        self.watch = BusWatch(self.group) if watch else None
+        self._files: list[Any] = []
+        self.emulator = self._spawn("emulator", ballbeam_argv("emulator", str(PAPER),
+                                                               *set_args(self.overrides)))
+        daemon_args = ["daemon", str(PAPER), *set_args(self.overrides), "--log", str(self.log_path)]
+        if file_size_limit is None:
+            argv = ballbeam_argv(*daemon_args)
+        else:
+            argv = [sys.executable, "-c", FSIZE_WRAPPER, str(file_size_limit), *daemon_args]
+        self.daemon = self._spawn("daemon", argv)
+
+    def _spawn(self, name: str, argv: list[str]) -> subprocess.Popen[bytes]:
+        # stderr to a file: a pipe nobody reads could fill up and stall the process.
+        stream = (self.tmp / f"{name}-{secrets.token_hex(3)}.stderr").open("w+b")
+        self._files.append(stream)
+        process = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=stream, cwd=REPO)
+        process.stderr_file = stream  # type: ignore[attr-defined]
+        return process
+
+    @staticmethod
+    def stderr(process: subprocess.Popen[bytes]) -> str:
+        stream = process.stderr_file  # type: ignore[attr-defined]
+        stream.flush()
+        stream.seek(0)
+        return str(stream.read().decode(errors="replace"))
+
+    def wait_cycling(self) -> Heard:
+        assert self.watch is not None
+        first = self.watch.wait_for(is_enabled_command, START_TIMEOUT_S)
+        assert first is not None, (
+            f"the daemon never commanded:\n{self.stderr(self.daemon)[-2000:]}"
+            f"\n{self.stderr(self.emulator)[-2000:]}"
+        )
+        return first
+
+    def wait_daemon(self, timeout_s: float) -> int:
+        try:
+            return self.daemon.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            self.daemon.kill()
+            self.daemon.wait()
+            raise AssertionError(f"the daemon did not end within {timeout_s} s") from None
+
+    def stop_emulator(self) -> int:
+        if self.emulator.poll() is None:
+            self.emulator.send_signal(signal.SIGTERM)
+        try:
+            return self.emulator.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            self.emulator.kill()
+            self.emulator.wait()
+            raise AssertionError("the emulator ignored SIGTERM for 10 s") from None
+
+    def close(self) -> None:
+        for process in (self.daemon, self.emulator):
+            if process.poll() is None:
+                process.kill()
+                process.wait()
+            if process.stdout is not None:
+                process.stdout.close()
+        if self.watch is not None:
+            self.watch.close()
+        for stream in self._files:
+            stream.close()
+
+    def __enter__(self) -> Bench:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.close()
+
+
+@dataclass
+class Outcome:
+    daemon_exit: int
+    log: RunLog
+    summary: dict[str, Any]
+    emulator: dict[str, int]
+    emulator_stderr: str
+    daemon_stderr: str
+
+
+def run_to_end(bench: Bench, extra_budget_s: float = 0.0) -> Outcome:
+    """Let a bench run its course, stop the emulator, read the log."""
+    budget_s = START_TIMEOUT_S + bench.config.run.duration_s * 3 + extra_budget_s
+    daemon_exit = bench.wait_daemon(budget_s)
+    assert bench.stop_emulator() == 0, bench.stderr(bench.emulator)[-2000:]
+    log = read_log(bench.log_path)
+    return Outcome(daemon_exit, log, summarise(log), emulator_counters(bench.stderr(bench.emulator)),
+                   bench.stderr(bench.emulator), bench.stderr(bench.daemon))
+
+
+def summary_meta(log: RunLog) -> dict[str, str]:
+    return dict(log.metadata.get("summary", {}))
+
+
+def faults(log: RunLog, kind: str | None = None) -> list[dict[str, Any]]:
+    topic = log.json_topics.get("/faults")
+    messages = list(topic.messages) if topic is not None else []
+    return [m for m in messages if kind is None or m["kind"] == kind]
+
+
+def events(log: RunLog, kind: str) -> list[dict[str, Any]]:
+    return [m for m in log.json_topics["/events"].messages if m["kind"] == kind]
+
+
+def shutdown_frames(log: RunLog) -> list[VoltageCommand]:
+    """The daemon's last sent frames that follow its last recorded /command (the stop)."""
+    tx = log.topics["/can/tx"].values
+    sent = [CONTRACT.decode(int(i), bytes(d)) for i, d in zip(tx["arbitration_id"], tx["data"],
+                                                               strict=True)]
+    last_counter = int(log.topics["/command"].values["counter"][-1])
+    tail_start = max(i for i, c in enumerate(sent)
+                     if isinstance(c, VoltageCommand) and c.counter == last_counter)
+    return [c for c in sent[tail_start + 1:] if isinstance(c, VoltageCommand)]
+
+
+# ---- the clean reference ------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def clean_realtime(tmp_path_factory: pytest.TempPathFactory) -> Outcome:
+    with Bench(tmp_path_factory.mktemp("clean"), "realtime", 4.0) as bench:
+        outcome = run_to_end(bench)
+    assert outcome.daemon_exit == 0, outcome.daemon_stderr[-2000:]
+    assert outcome.summary["end_reason"] == "completed"
+    assert outcome.summary["settle_time_s"] is not None
+    figure("clean_settle_s", outcome.summary["settle_time_s"])
+    return outcome
+
+
+def assert_settles_like(outcome: Outcome, clean: Outcome) -> None:
+    settle = outcome.summary["settle_time_s"]
+    assert settle is not None and math.isfinite(settle), outcome.summary
+    assert abs(settle - clean.summary["settle_time_s"]) <= SETTLE_TOLERANCE_S, (
+        settle, clean.summary["settle_time_s"])
+
+
+# ---- 1. bus noise -------------------------------------------------------------------------
+
+
+def test_a_flood_of_foreign_frames_is_rejected_and_counted_while_the_loop_holds_its_rate(
+    tmp_path: Path, clean_realtime: Outcome
+) -> None:
+    with Bench(tmp_path, "realtime", 4.0) as bench:
+        flood = subprocess.Popen(
+            [sys.executable, str(FLOOD), "--channel", bench.group, "--seed", "7",
+             "--rate-hz", "3000", "--max-frames", "20000", "--max-seconds", "3"],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
+        )
+        try:
+            flood_out, flood_err = flood.communicate(timeout=START_TIMEOUT_S + 10)
+        finally:
+            if flood.poll() is None:
+                flood.kill()
+                flood.communicate()
+        outcome = run_to_end(bench)
+    assert flood.returncode == 0, flood_err
+    sent = json.loads(flood_out)
+    by_kind = sent["by_kind"]
+    assert 0 < sent["sent"] <= 20_000 and sent["elapsed_s"] <= 3.1, sent
+
+    assert outcome.daemon_exit == 0, outcome.daemon_stderr[-2000:]
+    summary, meta = outcome.summary, summary_meta(outcome.log)
+    assert summary["end_reason"] == "completed" and not summary["truncated"]
+    # Counted, by reason, and recorded as /faults events (capped per reason).
+    rejected = {k.removeprefix("rejected_"): int(v) for k, v in meta.items()
+                if k.startswith("rejected_") and k != "rejected_total"}
+    assert int(meta["rejected_total"]) == sum(rejected.values()) > 0
+    for reason in ("unknown_id", "crc", "length", "foreign", "malformed"):
+        assert rejected.get(reason, 0) > 0, (reason, rejected)
+    assert rejected["malformed"] <= by_kind["raw_datagram"]
+    kinds = {m["kind"] for m in faults(outcome.log)}
+    assert {"rejected_unknown_id", "rejected_crc", "rejected_length", "rejected_foreign",
+            "rejected_malformed"} <= kinds
+    # No noise got through: no full-scale spoofed reading was used, the plant never saw a
+    # spoofed command (it applied at most what the daemon sent) and its watchdog never tripped.
+    sensor = outcome.log.topics["/sensor"].values
+    fresh = sensor["fresh"] == 1
+    assert np.abs(sensor["angle_counts"][fresh]).max() < 32767
+    assert np.abs(sensor["position_counts"][fresh]).max() < 32767
+    assert outcome.emulator["commands_applied"] <= len(outcome.log.topics["/can/tx"])
+    assert outcome.emulator["watchdog_trips"] == 0
+    assert outcome.emulator["rejected"] > 0 and outcome.emulator["own_or_foreign"] > 0
+    assert verify(outcome.log).ok
+    # The loop held its rate: 4000 periods, a handful skipped at most.
+    timing = outcome.log.topics["/timing"].values
+    executed = len(timing)
+    skipped = int(meta["skipped_periods"])
+    assert executed + skipped == 4000
+    assert skipped <= 40, meta
+    span_s = (int(timing["start_ns"][-1]) - int(timing["start_ns"][0])) * 1e-9
+    assert_settles_like(outcome, clean_realtime)
+    figure("flood_frames", sent)
+    figure("flood_loop", {"executed_cycles": executed, "skipped_periods": skipped,
+                          "overruns": int(meta["overruns"]),
+                          "cycle_rate_hz": round((executed - 1) / span_s, 1),
+                          "lateness_p99_us": round(summary["lateness_p99_us"], 1),
+                          "lateness_max_us": round(summary["lateness_max_us"], 1),
+                          "sensor_timeouts": len(faults(outcome.log, "sensor_timeout")),
+                          "settle_s": summary["settle_time_s"],
+                          "rejected": rejected})
+
+
+# ---- 2. lost frames -----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("loss", ["sensor_loss", "command_loss"])
+def test_lost_frames_are_survived_and_visible(
+    tmp_path: Path, clean_realtime: Outcome, loss: str
+) -> None:
+    with Bench(tmp_path, "realtime", 4.0, f"plant.{loss}=0.05", watch=False) as bench:
+        outcome = run_to_end(bench)
+    assert outcome.daemon_exit == 0, outcome.daemon_stderr[-2000:]
+    summary = outcome.summary
+    assert summary["end_reason"] == "completed" and not summary["truncated"]
+    assert_settles_like(outcome, clean_realtime)
+    assert summary["theta_violation_s"] == 0.0 or summary["max_abs_theta_deg"] < 53.0
+    dropped = outcome.emulator["dropped_by_injection"]
+    # 5 % of about 4000 frames: 200 expected, binomial sd 14.
+    assert 100 <= dropped <= 350, outcome.emulator
+    status = outcome.log.topics["/sensor"].values["status"]
+    assert not (status & STATUS_WATCHDOG).any(), "the plant's watchdog tripped"
+    assert outcome.emulator["watchdog_trips"] == 0
+    if loss == "sensor_loss":
+        assert 100 <= summary["frames_lost"] <= 350, summary
+        meta = summary_meta(outcome.log)
+        assert summary["coasted_cycles"] + int(meta["fault_cycles"]) >= 0.9 * summary["frames_lost"]
+    else:
+        # Invisible to the controller by design (see the module docstring): its sensor stream
+        # is complete, and the emulator's own count shows the commands it never applied.
+        assert summary["frames_lost"] <= 5, summary
+        assert outcome.emulator["commands_applied"] + dropped <= len(
+            outcome.log.topics["/can/tx"])
+    assert verify(outcome.log).ok
+    figure(f"{loss}_run", {"settle_s": summary["settle_time_s"], "dropped": dropped,
+                           "frames_lost": summary["frames_lost"],
+                           "coasted_cycles": summary["coasted_cycles"],
+                           "faults": summary["faults"]})
+
+
+# ---- 3. the emulator dies -----------------------------------------------------------------
+
+
+def _last_fresh_cycle(log: RunLog, before_cycle: int) -> int:
+    sensor = log.topics["/sensor"].values
+    mask = (sensor["fresh"] == 1) & (sensor["cycle"] < before_cycle)
+    return int(sensor["cycle"][mask].max())
+
+
+@pytest.mark.parametrize("stall_daemon", [False, True], ids=["plain", "daemon-stalled"])
+def test_emulator_killed_realtime_daemon_faults_to_0v_and_finishes_its_file(
+    tmp_path: Path, stall_daemon: bool
+) -> None:
+    """SIGKILL the plant. The daemon must fault at its first cycle that is at least
+    ``sensor_timeout_periods`` periods after the last fresh sample (3 cycles when it runs on
+    time), command 0 V disabled from then on, end the run after ``plant_lost_s`` and close a
+    complete file. "daemon-stalled" also freezes the daemon (SIGSTOP, 20 ms) just after the
+    kill, so the silence straddles an overrun: skipped periods are silent periods too."""
+    rng = random.Random(31 + stall_daemon)
+    with Bench(tmp_path, "realtime", 4.0) as bench:
+        bench.wait_cycling()
+        time.sleep(rng.uniform(0.4, 1.0))
+        bench.emulator.kill()
+        if stall_daemon:
+            time.sleep(0.0012)
+            bench.daemon.send_signal(signal.SIGSTOP)
+            time.sleep(0.02)
+            bench.daemon.send_signal(signal.SIGCONT)
+        bench.emulator.wait()
+        daemon_exit = bench.wait_daemon(START_TIMEOUT_S)
+        daemon_stderr = bench.stderr(bench.daemon)
+    # plant_lost ends the run normally: exit 0, with the reason in the file.
+    assert daemon_exit == 0, daemon_stderr[-2000:]
+    log = read_log(bench.log_path)
+    assert not log.truncated, log.truncation_reason
+    assert summary_meta(log)["end_reason"] == "plant_lost"
+    # The last timeout is the kill's (a scheduling hiccup may have caused a brief earlier one).
+    fault_cycle = int(faults(log, "sensor_timeout")[-1]["cycle"])
+    last_fresh = _last_fresh_cycle(log, fault_cycle)
+    executed = log.topics["/timing"].values["cycle"]
+
+    def first_executed(at_least: int) -> int:
+        return int(executed[executed >= at_least][0])
+
+    # The fault came at the first executed cycle at least TIMEOUT_PERIODS after the last sample.
+    assert fault_cycle == first_executed(last_fresh + TIMEOUT_PERIODS), (
+        last_fresh, fault_cycle, executed[-20:])
+    if not stall_daemon:
+        assert fault_cycle - last_fresh <= TIMEOUT_PERIODS
+    # 0 V, disabled, in every command from the fault on, then the stop frames.
+    command = log.topics["/command"].values
+    after = command["cycle"] >= fault_cycle
+    assert after.sum() > 0
+    assert (command["enable"][after] == 0).all()
+    assert (command["voltage_v"][after] == 0.0).all()
+    assert (command["requested_v"][after] == 0.0).all()
+    stops = shutdown_frames(log)
+    assert len(stops) == 3 and all(c.voltage_v == 0.0 and not c.enable for c in stops)
+    # Then the plant is declared lost after plant_lost_s of silence and the run ends.
+    lost = faults(log, "plant_lost")
+    assert len(lost) == 1
+    lost_after_periods = int(lost[0]["cycle"]) - last_fresh
+    plant_lost_periods = round(DEFAULTS.controller.plant_lost_s * 1e9 / PERIOD_NS)
+    assert int(lost[0]["cycle"]) == first_executed(last_fresh + plant_lost_periods)
+    assert "reason=plant_lost" in events(log, "daemon_stop")[0]["detail"]
+    assert verify(log).ok
+    replay = ballbeam("replay", str(bench.log_path))
+    assert replay.returncode == 0, replay.stderr
+    assert "plant_lost" in replay.stdout
+    figure(f"emulator_kill_{'stalled' if stall_daemon else 'plain'}",
+           {"detection_periods": fault_cycle - last_fresh,
+            "plant_lost_periods": lost_after_periods})
+
+
+def test_emulator_killed_lockstep_daemon_stops_on_silence_and_finishes_its_file(
+    tmp_path: Path,
+) -> None:
+    with Bench(tmp_path, "lockstep", 20.0, "controller.lockstep_timeout_s=0.5") as bench:
+        bench.wait_cycling()
+        time.sleep(0.5)
+        bench.emulator.kill()
+        bench.emulator.wait()
+        daemon_exit = bench.wait_daemon(START_TIMEOUT_S)
+        daemon_stderr = bench.stderr(bench.daemon)
+    assert daemon_exit == 0, daemon_stderr[-2000:]
+    log = read_log(bench.log_path)
+    assert not log.truncated
+    assert summary_meta(log)["end_reason"] == "plant_silent"
+    assert len(faults(log, "plant_silent")) == 1
+    stops = shutdown_frames(log)
+    assert len(stops) == 3 and all(c.voltage_v == 0.0 and not c.enable for c in stops)
+    assert verify(log).ok
+
+
+# ---- 4. the daemon dies -------------------------------------------------------------------
+
+KILLS_PER_MODE = 10
+# A killed daemon loses what its recorder had not flushed: one flush interval (50 ms), plus the
+# writer thread's poll (5 ms). Allowed: 100 ms, plus 50 ms for the writer thread being
+# descheduled or kept from the GIL on this shared two-core machine.
+TRUNCATION_BOUND_MS = 150.0
+# The emulator checks its watchdog once per sensor period (real time) or whenever its receive
+# wait ends (lock-step: at most one resend interval); a few ms more for scheduling.
+WATCHDOG_SLACK_MS = {"realtime": 1.0 + 4.0, "lockstep": DEFAULTS.plant.lockstep_resend_ms + 4.0}
+
+
+@dataclass
+class KillResult:
+    loss_ms: float  # last command on the bus → last command in the log
+    loss_cycles: int
+    log_time_loss_ms: float | None  # real time: kill → last log time (wall clock)
+    watchdog_ms: float  # as the emulator measured it
+    watchdog_heard_ms: float  # last command → first sensor frame with the watchdog bit
+
+
+def kill_daemon_once(tmp: Path, mode: str, delay_s: float, subprocess_replay: bool) -> KillResult:
+    duration_s = 2.0 if mode == "realtime" else 30.0  # lock-step runs faster than real time
+    with Bench(tmp, mode, duration_s) as bench:
+        assert bench.watch is not None
+        bench.wait_cycling()
+        time.sleep(delay_s)
+        kill_ns = time.time_ns()
+        bench.daemon.kill()
+        assert bench.daemon.wait(timeout=10) == -signal.SIGKILL
+        # Listen on: the watchdog, then the servo coasting to rest with no drive.
+        tripped = bench.watch.wait_for(
+            lambda h: h.arbitration_id == SENSOR_ID and h.time_ns > kill_ns
+            and isinstance(s := decoded(h), SensorFrame) and bool(s.status & STATUS_WATCHDOG),
+            timeout_s=2.0,
+        )
+        assert tripped is not None, "no sensor frame ever showed the watchdog bit"
+        time.sleep(0.3)
+        assert bench.stop_emulator() == 0
+        frames = list(bench.watch.frames)
+        emulator_stderr = bench.stderr(bench.emulator)
+    trips = watchdog_trips_ms(emulator_stderr)
+    assert len(trips) == 1, emulator_stderr[-2000:]
+    assert WATCHDOG_MS < trips[0] <= WATCHDOG_MS + WATCHDOG_SLACK_MS[mode], trips
+    heard = commands_heard(frames)
+    last_index, last_sent_ns, _ = heard[-1]
+    assert last_sent_ns <= kill_ns + 1_000_000
+    assert WATCHDOG_MS * 1e6 <= tripped.time_ns - last_sent_ns <= (
+        WATCHDOG_MS + WATCHDOG_SLACK_MS[mode] + 1.0) * 1e6
+
+    # The plant with no drive: real time, the servo stops within ~5 time constants (1/αβ =
+    # 17 ms) and stays put, inside its hard stops (so it was not a stop that held it);
+    # lock-step, the plant waits, frozen, resending the one sample.
+    angles = [(h.time_ns, a) for h in frames if h.arbitration_id == TRUTH_ANGLE_ID
+              and isinstance(a := decoded(h), TruthAngle)]
+    later = [a for t, a in angles if t >= tripped.time_ns + 100_000_000]
+    assert len(later) >= 2
+    if mode == "realtime":
+        assert max(abs(a.theta_rate_rad_s) for a in later) < 0.1
+        assert max(a.theta_rad for a in later) - min(a.theta_rad for a in later) < 1e-3
+        assert max(abs(a.theta_rad) for a in later) < math.radians(
+            DEFAULTS.plant.hard_stop_deg - 1.0)
+    else:
+        assert len(set(later)) == 1, later[:3]
+
+    # The log: readable, cut short, and it holds everything up to ~one flush before the end.
+    log = read_log(bench.log_path)
+    assert log.truncated, "a SIGKILLed daemon cannot have finished its file"
+    assert log.last_complete_time_ns is not None
+    recorded = log.topics["/command"].values
+    n_recorded = len(recorded)
+    assert 0 < n_recorded <= last_index + 1
+    by_index = {index: (t, c) for index, t, c in heard}
+    matched = max(i for i in by_index if i <= n_recorded - 1)  # normally n_recorded - 1 itself
+    if matched == n_recorded - 1:
+        row = recorded[-1]
+        expected = VoltageCommand(int(row["counter"]), float(row["voltage_v"]),
+                                  bool(row["enable"]), int(row["sensor_counter"]))
+        assert by_index[matched][1] == expected, (by_index[matched][1], expected)
+    loss_ms = (last_sent_ns - by_index[matched][0]) * 1e-6
+    assert loss_ms <= TRUNCATION_BOUND_MS, (loss_ms, log.truncation_reason)
+    log_time_loss_ms = None
+    if mode == "realtime":  # log times are wall-clock deadlines: compare with the kill itself
+        log_time_loss_ms = (kill_ns - log.last_complete_time_ns) * 1e-6
+        assert -2.0 <= log_time_loss_ms <= TRUNCATION_BOUND_MS, log_time_loss_ms
+    assert verify(log).ok  # as far as it goes, the record still explains every command
+    # And the user's tool reads it and says so.
+    if subprocess_replay:
+        replay = ballbeam("replay", str(bench.log_path))
+        stdout, code = replay.stdout, replay.returncode
+        assert "Traceback" not in replay.stderr
+    else:
+        out = io.StringIO()
+        with contextlib.redirect_stdout(out):
+            code = cli.main(["replay", str(bench.log_path)])
+        stdout = out.getvalue()
+    assert code == 0
+    assert "the log was cut short" in stdout
+    return KillResult(loss_ms, last_index + 1 - n_recorded, log_time_loss_ms, trips[0],
+                      (tripped.time_ns - last_sent_ns) * 1e-6)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["realtime", "lockstep"])
+def test_daemon_sigkilled_at_random_moments_plant_is_zeroed_and_log_recoverable(
+    tmp_path: Path, mode: str
+) -> None:
+    rng = random.Random(20 + (mode == "lockstep"))
+    results = [
+        kill_daemon_once(tmp_path / str(i), mode, rng.uniform(0.3, 1.5), subprocess_replay=i == 0)
+        for i in range(KILLS_PER_MODE)
+    ]
+
+    def spread(values: list[float]) -> str:
+        return (f"median {statistics.median(values):.1f}, max {max(values):.1f}, "
+                f"min {min(values):.1f}")
+
+    figure(f"daemon_kill_{mode}", {
+        "kills": len(results),
+        "truncation_loss_ms": spread([r.loss_ms for r in results]),
+        "truncation_loss_cycles": spread([float(r.loss_cycles) for r in results]),
+        "log_time_loss_ms": (spread([r.log_time_loss_ms for r in results
+                                     if r.log_time_loss_ms is not None])
+                             if mode == "realtime" else None),
+        "watchdog_ms_emulator": spread([r.watchdog_ms for r in results]),
+        "watchdog_ms_heard": spread([r.watchdog_heard_ms for r in results]),
+    })
+
+
+# ---- 5. SIGTERM ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("index", range(5))
+def test_sigterm_at_a_random_moment_stops_cleanly_at_0v(tmp_path: Path, index: int) -> None:
+    rng = random.Random(500 + index)
+    mode = "realtime" if index < 3 else "lockstep"
+    duration_s = 2.0 if mode == "realtime" else 30.0
+    with Bench(tmp_path, mode, duration_s) as bench:
+        bench.wait_cycling()
+        time.sleep(rng.uniform(0.1, 1.8))
+        bench.daemon.send_signal(signal.SIGTERM)
+        daemon_exit = bench.wait_daemon(30)
+        daemon_stderr = bench.stderr(bench.daemon)
+        assert bench.stop_emulator() == 0
+    assert daemon_exit == 0, daemon_stderr[-2000:]
+    assert "Traceback" not in daemon_stderr
+    log = read_log(bench.log_path)
+    assert not log.truncated, log.truncation_reason
+    assert summary_meta(log)["end_reason"] == "SIGTERM"
+    assert "reason=SIGTERM" in events(log, "daemon_stop")[0]["detail"]
+    stops = shutdown_frames(log)
+    assert len(stops) == 3 and all(c.voltage_v == 0.0 and not c.enable for c in stops)
+    assert len(log.topics["/command"]) < round(duration_s * 1000)
+    assert verify(log).ok
+    assert summarise(log)["truncated"] is False
+
+
+# ---- 6. the log cannot be written -----------------------------------------------------------
+
+
+def one_error_line(stderr: str) -> str:
+    assert "Traceback" not in stderr, stderr
+    lines = [line for line in stderr.splitlines() if line.strip()]
+    errors = [line for line in lines if line.startswith("ballbeam: error:")]
+    assert len(errors) == 1, stderr
+    return errors[0]
+
+
+def test_run_with_an_unusable_log_dir_refuses_before_starting_anything(tmp_path: Path) -> None:
+    blocker = tmp_path / "file.txt"
+    blocker.write_text("a file, not a directory\n")
+    group = isolated_group(DEFAULT_BUS_GROUP)
+    watch = BusWatch(group)
+    try:
+        result = ballbeam("run", str(PAPER), *set_args([
+            PLAN, "bus.isolate_runs=false", f"bus.channel='{group}'",
+            f"run.log_dir='{blocker / 'logs'}'"]))
+        time.sleep(0.2)
+    finally:
+        watch.close()
+    assert result.returncode == 2
+    line = one_error_line(result.stderr)
+    assert "cannot create log directory" in line and str(blocker) in line
+    assert len(result.stderr.strip().splitlines()) == 1
+    assert watch.frames == [], "a node started on the bus anyway"
+
+
+@pytest.mark.parametrize("target", ["/dev/full", "{tmp}/file.txt/run.mcap"])
+def test_daemon_refuses_a_log_it_cannot_write_before_touching_the_bus(
+    tmp_path: Path, target: str
+) -> None:
+    (tmp_path / "file.txt").write_text("x")
+    path = target.format(tmp=tmp_path)
+    group = isolated_group(DEFAULT_BUS_GROUP)
+    watch = BusWatch(group)
+    try:
+        result = ballbeam("daemon", str(PAPER), *set_args([PLAN, f"bus.channel='{group}'"]),
+                          "--log", path)
+        time.sleep(0.2)
+    finally:
+        watch.close()
+    assert result.returncode == 2
+    line = one_error_line(result.stderr)
+    assert path in line
+    assert ("No space left on device" in line) if path == "/dev/full" else ("Not a directory" in line)
+    assert len(result.stderr.strip().splitlines()) == 1
+    assert watch.frames == [], "the daemon sent frames without a log"
+
+
+def test_disk_full_mid_run_stops_the_run_at_0v_and_keeps_what_was_written(tmp_path: Path) -> None:
+    """The file may not grow past 96 kB (a full disk, seen as EFBIG): the run must not go on
+    unrecorded. The daemon stops at 0 V, exits 2 with one error line; the file is readable
+    up to its last complete chunk."""
+    limit = 96 * 1024
+    with Bench(tmp_path, "realtime", 60.0, file_size_limit=limit) as bench:
+        assert bench.watch is not None
+        bench.wait_cycling()
+        daemon_exit = bench.wait_daemon(30.0)  # the run was 60 s long
+        time.sleep(0.1)
+        assert bench.stop_emulator() == 0
+        frames = list(bench.watch.frames)
+        daemon_stderr = bench.stderr(bench.daemon)
+    assert daemon_exit == 2, daemon_stderr[-2000:]
+    line = one_error_line(daemon_stderr)
+    assert "File too large" in line and str(bench.log_path) in line
+    assert bench.log_path.stat().st_size <= limit
+    log = read_log(bench.log_path)
+    assert log.truncated and len(log.topics["/command"]) > 0
+    commands = commands_heard(frames)
+    assert all(c.voltage_v == 0.0 and not c.enable for _, _, c in commands[-3:])
+    figure("disk_full_run", {"cycles_commanded": len(commands), "recorded": len(
+        log.topics["/command"])})
+
+
+# ---- 7. bad invocations -------------------------------------------------------------------
+
+
+def _bad_invocations(tmp: Path) -> list[tuple[list[str], str, bool]]:
+    random_bytes = tmp / "random.mcap"
+    random_bytes.write_bytes(random.Random(3).randbytes(4096))
+    foreign = tmp / "foreign.mcap"
+    with foreign.open("wb") as stream:
+        writer = Writer(stream)
+        writer.start(profile="ros2", library="test")
+        writer.finish()
+    not_toml = tmp / "bad.toml"
+    not_toml.write_text("[controller\nrate_hz = \n")
+    loop = tmp / "loop.toml"
+    loop.write_text('extends = "loop.toml"\n')
+    missing = str(tmp / "missing.toml")
+    plan = ["plan", "--set", PLAN]
+    return [
+        ([*plan, "--set", "nosuch.key=1"], "unknown key", False),
+        ([*plan, "--set", "controller.rate_hz='fast'"], "controller.rate_hz", False),
+        ([*plan, "--set", "controller.rate_hz=1.5"], "controller.rate_hz", False),
+        ([*plan, "--set", "tracker.q=[1,-1,0,0]"], "positive semi-definite", False),
+        ([*plan, "--set", "tracker.q=[1,0,0]"], "4 diagonal entries", False),
+        ([*plan, "--set", "tracker.r=0"], "tracker.r", False),
+        ([*plan, "--set", "controller.rate_hz=3000"], "whole number of nanoseconds", False),
+        ([*plan, "--set", "controller.rate_hz=400"], "must divide", False),
+        ([*plan, "--set", "limits.voltage_v=-5"], "limits.voltage_v", False),
+        ([*plan, "--set", "limits.theta_deg=-52"], "limits.theta_deg", False),
+        ([*plan, "--set", "run.duration_s=nan"], "run.duration_s", False),
+        ([*plan, "--set", "no-equals-sign"], "dotted.key=value", False),
+        (["plan", missing], "not found", False),
+        (["plan", str(not_toml)], "not valid TOML", False),
+        (["plan", str(loop)], "extends", False),
+        (["plan", str(tmp)], "directory", False),
+        (["run", "--set", PLAN, "--set", "bus.channel='ff02::1'",
+          "--set", f"run.log_dir='{tmp}'"], "leaves this host", False),
+        (["replay", str(tmp / "missing.mcap")], "cannot open log", False),
+        (["replay", str(random_bytes)], "not an MCAP file", False),
+        (["replay", str(foreign)], "not a ballbeam log", False),
+        (["replay", str(tmp)], "directory", False),
+        # argparse: usage, then one "ballbeam ...: error:" line
+        (["frobnicate"], "invalid choice", True),
+        (["daemon", "--log"], "expected one argument", True),
+        (["replay"], "required", True),
+        (["regress", "--jobs", "0"], "must be at least 1", True),
+        (["plan", "--bogus"], "unrecognized arguments", True),
+    ]
+
+
+def test_bad_invocations_exit_2_with_one_error_line(tmp_path: Path) -> None:
+    cases = _bad_invocations(tmp_path)
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        results = list(pool.map(lambda case: ballbeam(*case[0], timeout_s=60), cases))
+    for (argv, needle, from_argparse), result in zip(cases, results, strict=True):
+        where = f"ballbeam {' '.join(argv)}"
+        assert result.returncode == 2, (where, result.returncode, result.stderr)
+        assert "Traceback" not in result.stderr, (where, result.stderr)
+        lines = [line for line in result.stderr.splitlines() if line.strip()]
+        errors = [line for line in lines if re.match(r"ballbeam( \w+)?: error:", line)]
+        assert len(errors) == 1, (where, result.stderr)
+        assert needle in errors[0], (where, result.stderr)
+        if from_argparse:  # its usage, then its one error line
+            assert all(line.startswith(("usage:", " ")) for line in lines[:-1]), (where, lines)
+            assert lines[-1] == errors[0]
+        else:  # ours: the one line, nothing else
+            assert lines == errors and errors[0].startswith("ballbeam: error:"), (where, lines)
+
+
+def _leaf_keys() -> list[str]:
+    keys = []
+    for section, field in Config.model_fields.items():
+        annotation = field.annotation
+        if isinstance(annotation, type) and hasattr(annotation, "model_fields"):
+            keys += [f"{section}.{name}" for name in annotation.model_fields]
+        else:
+            keys.append(section)
+    return [key for key in keys if key != "plan.kind"]  # the path stays the rate-limited one
+
+
+TOML_VALUES = st.one_of(
+    st.sampled_from(["0", "1", "-1", "1e400", "-0.0", "nan", "inf", "-inf", "1e-300", "true",
+                     "'text'", '"x"', "[]", "[1,2,3]", "[1,0,100,1000]", "[0,0,0,0]",
+                     "{a = 1}", "1979-05-27", "", "[[", "'", "=", "0x10", "1_000", "[1,'a']",
+                     "9999999999999999999999", "'ff11::1'", "'udp_multicast'"]),
+    st.integers(-10**6, 10**6).map(str),
+    st.floats(allow_nan=True, allow_infinity=True).map(repr),
+    st.text(max_size=12),
+)
+ASSIGNMENTS = st.one_of(
+    st.tuples(st.sampled_from(_leaf_keys()), TOML_VALUES).map(lambda kv: f"{kv[0]}={kv[1]}"),
+    st.tuples(st.text(max_size=15), TOML_VALUES).map(lambda kv: f"{kv[0]}={kv[1]}"),
+    st.text(max_size=20),
+)
+
+
+@settings(max_examples=120, deadline=None)
+@given(st.lists(ASSIGNMENTS, min_size=1, max_size=3), st.booleans())
+def test_random_overrides_exit_0_or_2_and_never_raise(assignments: list[str], glued: bool) -> None:
+    argv = ["plan", "--set", PLAN]
+    for assignment in assignments:
+        argv += [f"--set={assignment}"] if glued else ["--set", assignment]
+    stdout, stderr = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+        try:
+            code = cli.main(argv)
+        except SystemExit as exit_:  # argparse refusing the command line
+            code = exit_.code  # type: ignore[assignment]
+            assert code == 2, stderr.getvalue()
+    assert code in (0, 2), (argv, stderr.getvalue())
+    if code == 2 and stderr.getvalue().startswith("ballbeam: error:"):
+        assert len(stderr.getvalue().strip().splitlines()) == 1, stderr.getvalue()
+
+
+# ---- 8. hostile logs ----------------------------------------------------------------------
+
+SENTINEL_NAME = "executed.txt"
+
+
+class _Touch:
+    """Unpickling this would create a file: proof that nothing is unpickled."""
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (open, (self.path, "w"))
+
+
+def _rows(topic: str, n: int) -> list[tuple[Any, ...]]:
+    rows: list[tuple[Any, ...]] = []
+    for k in range(n):
+        x = 0.195 * math.exp(-k / 80)
+        state = (0.0, 0.0, 0.0, x)
+        if topic == "/command":
+            rows.append((k, 0.1, 0.1, 1, k % 256, k % 256))
+        elif topic == "/reference":
+            rows.append((k, *state, 0.0))
+        elif topic == "/truth":
+            rows.append((k % 256, *state))
+        elif topic == "/timing":
+            rows.append((k, k * PERIOD_NS, k * PERIOD_NS, k * PERIOD_NS + 1000, 0, 0))
+        elif topic == "/sensor":
+            rows.append((k, 1, k % 256, 0, 0, 0, 0.0, x))
+        elif topic == "/estimate":
+            rows.append((k, *state))
+    return rows
+
+
+def write_log(
+    path: Path,
+    *,
+    config_json: str | None = None,
+    schema_text: dict[str, str] | None = None,
+    fault_payloads: Sequence[bytes] = (),
+    evil_channel: bytes | None = None,
+) -> Path:
+    """A log written with the mcap library's Writer, shaped like ours, with parts replaced."""
+    if config_json is None:
+        config_json = json.dumps(DEFAULTS.model_dump(mode="json"))
+    schema_text = schema_text or {}
+    n = 300
+    with path.open("wb") as stream:
+        writer = Writer(stream, compression=CompressionType.ZSTD)
+        writer.start(profile="ballbeam", library="hostile test")
+        writer.add_metadata("config", {"json": config_json,
+                                       "note": "__import__('os').system('touch executed.txt')"})
+        for topic in ("/command", "/reference", "/truth", "/timing", "/sensor", "/estimate"):
+            schema = channels.STRUCT_TOPICS[topic]
+            text = schema_text.get(topic, schema.ros2msg)
+            schema_id = writer.register_schema(schema.name, "ros2msg", text.encode())
+            channel_id = writer.register_channel(topic, "cdr", schema_id)
+            for k, row in enumerate(_rows(topic, n)):
+                payload = schema.pack(row)
+                if topic in schema_text:  # a layout of another size: same bytes, cut to fit
+                    payload = payload[:12]
+                t = 1_000_000_000 + k * PERIOD_NS
+                writer.add_message(channel_id, t, payload, t)
+        event_schema = writer.register_schema(
+            "ballbeam/Event", "jsonschema", json.dumps(channels.EVENT_SCHEMA).encode())
+        faults_channel = writer.register_channel("/faults", "json", event_schema)
+        for k, payload in enumerate(fault_payloads):
+            writer.add_message(faults_channel, 1_000_000_000 + k, payload, 1_000_000_000 + k)
+        if evil_channel is not None:
+            evil = writer.register_channel("/evil", "pickle", 0)
+            writer.add_message(evil, 1_000_000_000, evil_channel, 1_000_000_000)
+        writer.finish()
+    return path
+
+
+def replay_in_process(*argv: str) -> tuple[int, str, str]:
+    stdout, stderr = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+        code = cli.main(["replay", *argv])
+    return code, stdout.getvalue(), stderr.getvalue()
+
+
+def test_the_hostile_log_builder_makes_a_log_replay_accepts(tmp_path: Path) -> None:
+    path = write_log(tmp_path / "fine.mcap",
+                     fault_payloads=[b'{"cycle": 1, "kind": "x", "detail": "y"}'])
+    code, stdout, stderr = replay_in_process(str(path))
+    assert code == 0, stderr
+    assert "replay of" in stdout
+
+
+HOSTILE: dict[str, tuple[dict[str, Any], str]] = {
+    "command schema is garbage": (
+        {"schema_text": {"/command": "this is ::: not a schema {\n"}}, "schema"),
+    "command schema is another layout": (
+        {"schema_text": {"/command": "float64 volts\n"}}, "/command"),
+    "config is not JSON": ({"config_json": "{not json"}, "not JSON"),
+    "config is a JSON list": ({"config_json": "[1, 2]"}, "config"),
+    "config lacks the limits": ({"config_json": '{"run": {}}'}, "config"),
+    "config limit is text": (
+        {"config_json": '{"limits": {"theta_deg": "abc", "voltage_v": 5}}'}, "config"),
+    "fault payload is not JSON": ({"fault_payloads": [b"\xff{not json"]}, "not JSON"),
+    "fault payload nests deeply": (
+        {"fault_payloads": [b"[" * 200_000 + b"]" * 200_000]}, "not JSON"),
+    "fault payload is a list": ({"fault_payloads": [b"[1, 2, 3]"]}, "not an object"),
+    "a pickled channel": ({"evil_channel": b""}, "/evil"),
+}
+
+
+@pytest.mark.parametrize("verify_flag", [False, True], ids=["replay", "replay-verify"])
+@pytest.mark.parametrize("case", list(HOSTILE))
+def test_replay_of_a_hostile_log_exits_2_and_executes_nothing(
+    tmp_path: Path, case: str, verify_flag: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    options, needle = HOSTILE[case]
+    if "evil_channel" in options:
+        options = {"evil_channel": pickle.dumps(_Touch(str(tmp_path / SENTINEL_NAME)))}
+    path = write_log(tmp_path / "hostile.mcap", **options)
+    before = sorted(os.listdir(tmp_path))
+    code, _, stderr = replay_in_process(str(path), *(["--verify"] if verify_flag else []))
+    assert code == 2, stderr
+    assert stderr.startswith("ballbeam: error:") and len(stderr.strip().splitlines()) == 1, stderr
+    assert needle in stderr, stderr
+    assert sorted(os.listdir(tmp_path)) == before  # nothing written, nothing executed
+    assert not (tmp_path / SENTINEL_NAME).exists()
+
+
+def test_replay_of_a_hostile_log_as_a_process_has_no_traceback(tmp_path: Path) -> None:
+    paths = [write_log(tmp_path / "a.mcap", schema_text={"/command": "float64 volts\n"}),
+             write_log(tmp_path / "b.mcap", config_json="[1, 2]")]
+    for path in paths:
+        result = ballbeam("replay", str(path), "--verify")
+        assert result.returncode == 2, result.stderr
+        one_error_line(result.stderr)
+        assert len(result.stderr.strip().splitlines()) == 1
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _print_figures() -> Iterator[None]:
+    yield
+    if FIGURES:
+        print("\nfault-test figures:\n" + json.dumps(FIGURES, indent=2, default=str))
