@@ -32,7 +32,9 @@ import random
 import re
 import secrets
 import signal
+import socket
 import statistics
+import struct
 import subprocess
 import sys
 import threading
@@ -43,6 +45,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import can
+import msgpack
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -55,7 +59,7 @@ from ballbeam.config import DEFAULT_BUS_GROUP, BusSection, Config, load_config
 from ballbeam.logs.reader import RunLog, read_log
 from ballbeam.replay import verify
 from ballbeam.runtime import channels
-from ballbeam.runtime.bus import isolated_group, open_bus, recv_frame
+from ballbeam.runtime.bus import IPV6_MULTICAST_ALL, isolated_group, multicast_scope, open_bus
 from ballbeam.runtime.frames import (
     SENSOR_ID,
     STATUS_WATCHDOG,
@@ -81,6 +85,8 @@ TIMEOUT_PERIODS = DEFAULTS.controller.sensor_timeout_periods
 WATCHDOG_MS = DEFAULTS.plant.watchdog_ms
 SETTLE_TOLERANCE_S = 0.3
 START_TIMEOUT_S = 60.0  # process start, planning and synthesis, on a busy machine
+SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)  # Linux values
+SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)
 # Every test's own figures, printed at the end of a test (pytest -s shows them).
 FIGURES: dict[str, Any] = {}
 
@@ -127,25 +133,67 @@ class Heard:
 
 
 class BusWatch:
-    """The test's node on a bench's private group: a thread that keeps every frame it hears."""
+    """The test's node on a bench's private group, as cheap as a listener can be.
 
-    def __init__(self, group: str) -> None:
-        self.bus = open_bus(BusSection(channel=group))
-        self.frames: list[Heard] = []
+    Its thread only drains the socket (a large receive buffer, the kernel's receive time
+    stamps) and keeps the raw datagrams; they are unpacked in the caller's thread when asked
+    for. python-can's own listener costs tens of microseconds a frame in Python, which on two
+    busy cores fell behind lock-step traffic (~9 k frames/s) and dropped frames.
+    """
+
+    def __init__(self, group: str, port: int = DEFAULTS.bus.port) -> None:
+        assert multicast_scope(group) == 1, "interface-local groups only"
+        sock = socket.socket(socket.AF_INET6, socket.SOCK_DGRAM)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, SO_RCVBUFFORCE, 16 << 20)
+        except OSError:  # not root: as much as the system allows
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 16 << 20)
+        sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+        sock.setsockopt(socket.IPPROTO_IPV6, IPV6_MULTICAST_ALL, 0)  # this group only
+        sock.bind(("", port))
+        sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_JOIN_GROUP,
+                        socket.inet_pton(socket.AF_INET6, group) + struct.pack("@I", 0))
+        sock.settimeout(0.05)
+        self._sock = sock
+        self._raw: list[tuple[int, bytes]] = []
+        self._frames: list[Heard] = []
+        self._unpacked = 0
         self.malformed = 0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="bus watch", daemon=True)
         self._thread.start()
 
-    def _count_malformed(self, _detail: str) -> None:
-        self.malformed += 1
-
     def _run(self) -> None:
+        ancillary_size = socket.CMSG_SPACE(16)
         while not self._stop.is_set():
-            message = recv_frame(self.bus, 0.05, self._count_malformed)
-            if message is not None:
-                self.frames.append(Heard(round(message.timestamp * 1e9), message.arbitration_id,
-                                         message.is_extended_id, bytes(message.data)))
+            try:
+                data, ancillary, _, _ = self._sock.recvmsg(4096, ancillary_size)
+            except TimeoutError:
+                continue
+            stamp_ns = time.time_ns()
+            for level, kind, value in ancillary:
+                if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS:
+                    seconds, nanoseconds = struct.unpack("@qq", value[:16])
+                    stamp_ns = seconds * 1_000_000_000 + nanoseconds
+            self._raw.append((stamp_ns, data))
+
+    @property
+    def frames(self) -> list[Heard]:
+        """Every frame heard so far, in order (datagrams that are no frame are counted)."""
+        raw = self._raw
+        for stamp_ns, data in raw[self._unpacked:len(raw)]:
+            self._unpacked += 1
+            try:
+                fields = msgpack.unpackb(data, raw=False)
+                heard = Heard(stamp_ns, int(fields["arbitration_id"]),
+                              bool(fields["is_extended_id"]), bytes(fields["data"]))
+            except (ValueError, TypeError, KeyError, msgpack.UnpackException):
+                self.malformed += 1
+                continue
+            self._frames.append(heard)
+        return self._frames
 
     def wait_for(self, predicate: Callable[[Heard], bool], timeout_s: float) -> Heard | None:
         """The first frame (heard so far or within ``timeout_s``) that satisfies ``predicate``."""
@@ -164,7 +212,7 @@ class BusWatch:
     def close(self) -> None:
         self._stop.set()
         self._thread.join(timeout=5)
-        self.bus.shutdown()
+        self._sock.close()
 
 
 def decoded(heard: Heard) -> object | None:
@@ -370,13 +418,36 @@ def assert_settles_like(outcome: Outcome, clean: Outcome) -> None:
 # ---- 1. bus noise -------------------------------------------------------------------------
 
 
-def test_a_flood_of_foreign_frames_is_rejected_and_counted_while_the_loop_holds_its_rate(
-    tmp_path: Path, clean_realtime: Outcome
-) -> None:
-    with Bench(tmp_path, "realtime", 4.0) as bench:
+def test_private_groups_on_one_port_do_not_hear_each_other() -> None:
+    """What every test here (and ``ballbeam run``'s bus.isolate_runs) relies on. Linux by
+    default hands a datagram to every socket on the port once the host joined its group."""
+    port = DEFAULTS.bus.port
+    group, other = isolated_group(DEFAULT_BUS_GROUP), isolated_group(DEFAULT_BUS_GROUP)
+    sender = open_bus(BusSection(channel=group, port=port))
+    same = open_bus(BusSection(channel=group, port=port))
+    elsewhere = open_bus(BusSection(channel=other, port=port))
+    watch = BusWatch(other, port)
+    try:
+        sender.send(can.Message(arbitration_id=0x7AB, data=b"hello", is_extended_id=False))
+        heard = same.recv(timeout=1.0)
+        assert heard is not None and bytes(heard.data) == b"hello"
+        assert elsewhere.recv(timeout=0.3) is None
+        time.sleep(0.05)
+    finally:
+        for bus in (sender, same, elsewhere):
+            bus.shutdown()
+        watch.close()
+    assert watch.frames == []
+
+
+def run_with_flood(tmp: Path, start_on: str, duration_s: float, seed: int,
+                   raw_weight: int = 4) -> tuple[Outcome, dict[str, Any]]:
+    with Bench(tmp, "realtime", duration_s, watch=False) as bench:
         flood = subprocess.Popen(
-            [sys.executable, str(FLOOD), "--channel", bench.group, "--seed", "7",
-             "--rate-hz", "3000", "--max-frames", "20000", "--max-seconds", "3"],
+            [sys.executable, str(FLOOD), "--channel", bench.group, "--seed", str(seed),
+             "--rate-hz", "3000", "--max-frames", "20000", "--max-seconds", "3",
+             "--start-on", start_on, "--wait", str(START_TIMEOUT_S),
+             "--raw-weight", str(raw_weight)],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
         )
         try:
@@ -387,13 +458,24 @@ def test_a_flood_of_foreign_frames_is_rejected_and_counted_while_the_loop_holds_
                 flood.communicate()
         outcome = run_to_end(bench)
     assert flood.returncode == 0, flood_err
-    sent = json.loads(flood_out)
-    by_kind = sent["by_kind"]
+    sent: dict[str, Any] = json.loads(flood_out)
     assert 0 < sent["sent"] <= 20_000 and sent["elapsed_s"] <= 3.1, sent
-
     assert outcome.daemon_exit == 0, outcome.daemon_stderr[-2000:]
+    assert "Traceback" not in outcome.daemon_stderr + outcome.emulator_stderr
+    assert outcome.summary["end_reason"] == "completed" and not outcome.summary["truncated"]
+    return outcome, sent
+
+
+# Not a speed target: the loop stays on wall time and runs nearly every period under the flood.
+MAX_SKIPPED_FRACTION = 0.05
+
+
+def test_a_flood_of_foreign_frames_is_rejected_and_counted_while_the_loop_holds_its_rate(
+    tmp_path: Path, clean_realtime: Outcome
+) -> None:
+    outcome, sent = run_with_flood(tmp_path, "command", 4.0, seed=7)
+    by_kind = sent["by_kind"]
     summary, meta = outcome.summary, summary_meta(outcome.log)
-    assert summary["end_reason"] == "completed" and not summary["truncated"]
     # Counted, by reason, and recorded as /faults events (capped per reason).
     rejected = {k.removeprefix("rejected_"): int(v) for k, v in meta.items()
                 if k.startswith("rejected_") and k != "rejected_total"}
@@ -411,16 +493,18 @@ def test_a_flood_of_foreign_frames_is_rejected_and_counted_while_the_loop_holds_
     assert np.abs(sensor["angle_counts"][fresh]).max() < 32767
     assert np.abs(sensor["position_counts"][fresh]).max() < 32767
     assert outcome.emulator["commands_applied"] <= len(outcome.log.topics["/can/tx"])
-    assert outcome.emulator["watchdog_trips"] == 0
+    assert not (sensor["status"] & STATUS_WATCHDOG).any(), "the plant's watchdog tripped"
+    assert outcome.emulator["watchdog_trips"] <= 1  # the one at the end, after the daemon left
     assert outcome.emulator["rejected"] > 0 and outcome.emulator["own_or_foreign"] > 0
     assert verify(outcome.log).ok
-    # The loop held its rate: 4000 periods, a handful skipped at most.
+    # The loop held its rate: 4000 periods on wall time, nearly all of them run.
     timing = outcome.log.topics["/timing"].values
     executed = len(timing)
     skipped = int(meta["skipped_periods"])
     assert executed + skipped == 4000
-    assert skipped <= 40, meta
+    assert skipped <= MAX_SKIPPED_FRACTION * 4000, meta
     span_s = (int(timing["start_ns"][-1]) - int(timing["start_ns"][0])) * 1e-9
+    assert abs(span_s - 3.999) < 0.01, span_s
     assert_settles_like(outcome, clean_realtime)
     figure("flood_frames", sent)
     figure("flood_loop", {"executed_cycles": executed, "skipped_periods": skipped,
@@ -431,6 +515,18 @@ def test_a_flood_of_foreign_frames_is_rejected_and_counted_while_the_loop_holds_
                           "sensor_timeouts": len(faults(outcome.log, "sensor_timeout")),
                           "settle_s": summary["settle_time_s"],
                           "rejected": rejected})
+
+
+def test_a_flood_while_the_daemon_starts_up_does_not_stop_it(tmp_path: Path) -> None:
+    """The flood starts with the plant's first sample: the daemon meets it while it plans,
+    waits for the plant and probes the sensor phase (a window of ~20 ms), not only once it
+    is cycling. A third of it is raw datagrams, so that the short windows do get some."""
+    outcome, sent = run_with_flood(tmp_path, "sensor", 2.0, seed=8, raw_weight=48)
+    meta = summary_meta(outcome.log)
+    assert int(meta["rejected_total"]) > 0
+    assert int(meta.get("rejected_malformed", 0)) > 0
+    figure("startup_flood", {"sent": sent["sent"], "rejected_total": meta["rejected_total"],
+                             "cycles": outcome.summary["cycles"]})
 
 
 # ---- 2. lost frames -----------------------------------------------------------------------
@@ -452,7 +548,7 @@ def test_lost_frames_are_survived_and_visible(
     assert 100 <= dropped <= 350, outcome.emulator
     status = outcome.log.topics["/sensor"].values["status"]
     assert not (status & STATUS_WATCHDOG).any(), "the plant's watchdog tripped"
-    assert outcome.emulator["watchdog_trips"] == 0
+    assert outcome.emulator["watchdog_trips"] <= 1  # the one at the end, after the daemon left
     if loss == "sensor_loss":
         assert 100 <= summary["frames_lost"] <= 350, summary
         meta = summary_meta(outcome.log)
@@ -494,7 +590,7 @@ def test_emulator_killed_realtime_daemon_faults_to_0v_and_finishes_its_file(
         time.sleep(rng.uniform(0.4, 1.0))
         bench.emulator.kill()
         if stall_daemon:
-            time.sleep(0.0012)
+            time.sleep(0.0003)
             bench.daemon.send_signal(signal.SIGSTOP)
             time.sleep(0.02)
             bench.daemon.send_signal(signal.SIGCONT)
@@ -640,9 +736,10 @@ def kill_daemon_once(tmp: Path, mode: str, delay_s: float, subprocess_replay: bo
     matched = max(i for i in by_index if i <= n_recorded - 1)  # normally n_recorded - 1 itself
     if matched == n_recorded - 1:
         row = recorded[-1]
-        expected = VoltageCommand(int(row["counter"]), float(row["voltage_v"]),
-                                  bool(row["enable"]), int(row["sensor_counter"]))
-        assert by_index[matched][1] == expected, (by_index[matched][1], expected)
+        expected = CONTRACT.encode_voltage_command(
+            int(row["counter"]), float(row["voltage_v"]), bool(row["enable"]),
+            int(row["sensor_counter"]))
+        assert CONTRACT.encode(by_index[matched][1])[1] == expected, (by_index[matched], row)
     loss_ms = (last_sent_ns - by_index[matched][0]) * 1e-6
     assert loss_ms <= TRUNCATION_BOUND_MS, (loss_ms, log.truncation_reason)
     log_time_loss_ms = None

@@ -6,6 +6,7 @@ Computed from the log alone, so ``ballbeam run`` and ``ballbeam replay`` report 
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -14,6 +15,7 @@ import numpy as np
 from ballbeam.core.metrics import compute_metrics
 from ballbeam.errors import LogFormatError
 from ballbeam.logs.reader import RunLog
+from ballbeam.runtime.channels import STRUCT_TOPICS
 
 REQUIRED_TOPICS = ("/command", "/reference", "/truth", "/timing")
 SATURATION_TOLERANCE_V = 1e-6
@@ -35,6 +37,18 @@ class RunSeries:
 STATE_NAMES = ("theta_rad", "theta_rate_rad_s", "ball_velocity_m_s", "ball_position_m")
 
 
+def check_layouts(run_log: RunLog, topics: Iterable[str]) -> None:
+    """LogFormatError unless each of ``topics`` that the log has is in the ballbeam layout."""
+    for topic in topics:
+        found = run_log.topics.get(topic)
+        if found is not None and found.schema.fields != STRUCT_TOPICS[topic].fields:
+            raise LogFormatError(
+                f"{run_log.path}: topic {topic!r} has layout {found.schema.name!r} "
+                f"({', '.join(found.schema.field_names)}), not ballbeam's "
+                f"{STRUCT_TOPICS[topic].name!r}"
+            )
+
+
 def run_series(run_log: RunLog) -> RunSeries:
     missing = [topic for topic in REQUIRED_TOPICS if len(run_log.topics.get(topic, ())) == 0]
     if missing:
@@ -42,6 +56,7 @@ def run_series(run_log: RunLog) -> RunSeries:
         raise LogFormatError(
             f"{run_log.path}: no {', '.join(missing)} messages{where}; nothing to analyse"
         )
+    check_layouts(run_log, REQUIRED_TOPICS)
     command = run_log.topics["/command"]
     reference = run_log.topics["/reference"]
     truth = run_log.topics["/truth"]
@@ -156,15 +171,30 @@ def _resolved_config(run_log: RunLog) -> dict[str, Any]:
     if text is None:
         raise LogFormatError(f"{run_log.path}: the log holds no resolved config")
     try:
-        config: dict[str, Any] = json.loads(text)
-    except ValueError as error:
+        config = json.loads(text)
+    except (ValueError, RecursionError) as error:
         raise LogFormatError(f"{run_log.path}: the recorded config is not JSON") from error
+    if not isinstance(config, dict):
+        raise LogFormatError(f"{run_log.path}: the recorded config is not a JSON object")
     return config
 
 
+def _recorded_limit(run_log: RunLog, name: str) -> float:
+    config = _resolved_config(run_log)
+    try:
+        value = float(config["limits"][name])
+    except (KeyError, TypeError, ValueError) as error:
+        raise LogFormatError(
+            f"{run_log.path}: the recorded config has no usable limits.{name}"
+        ) from error
+    if not (math.isfinite(value) and value > 0):
+        raise LogFormatError(f"{run_log.path}: the recorded config has limits.{name} = {value}")
+    return value
+
+
 def limit_from_log(run_log: RunLog) -> float:
-    return math.radians(float(_resolved_config(run_log)["limits"]["theta_deg"]))
+    return math.radians(_recorded_limit(run_log, "theta_deg"))
 
 
 def voltage_limit_from_log(run_log: RunLog) -> float:
-    return float(_resolved_config(run_log)["limits"]["voltage_v"])
+    return _recorded_limit(run_log, "voltage_v")

@@ -45,7 +45,12 @@ def make_plan(config: Config) -> Plan:
         config.design_model(),
         start,
         voltage_limit_v=config.limits.voltage_v - config.plan.voltage_margin_v,
-        theta_max_rad=theta_max_rad - math.radians(config.plan.theta_margin_deg),
+        # The margin keeps the path off the limit, but never excludes the start itself
+        # (the paper starts exactly on −52°): then the path may touch the start's angle.
+        theta_max_rad=min(
+            theta_max_rad,
+            max(theta_max_rad - math.radians(config.plan.theta_margin_deg), abs(float(start[0]))),
+        ),
         step_s=config.plan.step_s or config.controller.period_s,
     )
 
@@ -81,7 +86,14 @@ def controller_design(config: Config, plan: Plan | None = None) -> ControllerDes
     guard = None
     if config.controller.theta_guard:
         constants_alpha = constants.alpha
-        discrete = model.discretize(period_s)
+        # In real time a command lands some time after its sensor sample; the guard then
+        # judges the state that far ahead, not just one period.
+        latency_s = (
+            config.controller.theta_guard_latency_us * 1e-6
+            if config.run.mode == "realtime"
+            else 0.0
+        )
+        discrete = model.discretize(period_s + latency_s)
         brake_v = config.controller.theta_guard_brake_v or max(
             0.5 * config.limits.voltage_v, config.limits.voltage_v - config.plant.deadzone_v
         )
@@ -106,6 +118,7 @@ def controller_design(config: Config, plan: Plan | None = None) -> ControllerDes
         reference_input_v=samples.input_v,
         voltage_limit_v=config.limits.voltage_v,
         guard=guard,
+        initial_state=config.initial.state(),
         angle_per_count=constants.angle_sensor_gain * encoder_step_rad,
         position_per_count=constants.position_sensor_gain * adc_step_m,
     )

@@ -94,9 +94,9 @@ class PlanSection(_Section):
 
 class TrackerSection(_Section):
     q: tuple[float, ...] = Field(
-        (50.0, 0.0, 20.0, 2000.0), description="diagonal of Q for (θ, θ̇, ẋ, x)"
+        (10.0, 0.0, 0.0, 10000.0), description="diagonal of Q for (θ, θ̇, ẋ, x)"
     )
-    r: float = Field(0.05, gt=0, description="input weight R")
+    r: float = Field(0.01, gt=0, description="input weight R")
     horizon_s: float = Field(8.0, gt=0, le=3600)
     terminal: Literal["stationary", "zero"] = "stationary"
     input_reference: Literal["feedforward", "zero"] = Field(
@@ -148,6 +148,10 @@ class ControllerSection(_Section):
     )
     theta_guard_margin_deg: float = Field(
         0.3, ge=0, le=10, description="the guard stops the servo this far inside the limit"
+    )
+    theta_guard_latency_us: int = Field(
+        1000, ge=0, le=100_000,
+        description="real time: command latency the guard allows for (it looks this much further)",
     )
     theta_guard_brake_v: float | None = Field(
         None, gt=0, description="braking voltage the guard counts on; default V − dead zone"
@@ -229,7 +233,7 @@ class BusSection(_Section):
     channel: str = DEFAULT_BUS_GROUP
     port: int = Field(43113, ge=1, le=65535)
     isolate_runs: bool = Field(
-        True, description="ballbeam run: give each run a private group (random low 64 bits)"
+        True, description="ballbeam run: give each run a private group and port"
     )
     allow_off_host: bool = Field(
         False, description="permit a multicast group whose traffic leaves this host"
@@ -357,10 +361,10 @@ def _describe(error: ValidationError, source: str) -> str:
     for item in error.errors():
         key = ".".join(str(part) for part in item["loc"]) or "(top level)"
         if item["type"] == "extra_forbidden":
-            lines.append(f"unknown key '{key}'")
+            lines.append(f"unknown key {key!r}")
         else:
             message = item["msg"].removeprefix("Value error, ")
-            lines.append(f"'{key}': {message}" if item["loc"] else message)
+            lines.append(f"{key!r}: {message}" if item["loc"] else message)
     return f"{source}: " + "; ".join(lines)
 
 

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ballbeam.analysis import check_layouts
 from ballbeam.assembly import controller_design
 from ballbeam.config import config_from_mapping
 from ballbeam.core.control import ControllerState, coast_cycles, control_cycle
@@ -45,12 +46,16 @@ def verify(run_log: RunLog) -> VerifyResult:
     if text is None:
         raise LogFormatError(f"{run_log.path}: no recorded config, cannot re-run the controller")
     try:
-        config = config_from_mapping(json.loads(text), f"{run_log.path} (recorded config)")
-    except ValueError as error:
+        data = json.loads(text)
+        if not isinstance(data, dict):
+            raise ValueError("not a JSON object")
+        config = config_from_mapping(data, f"{run_log.path} (recorded config)")
+    except (ValueError, RecursionError) as error:
         raise LogFormatError(f"{run_log.path}: recorded config unusable: {error}") from error
     for topic in VERIFY_TOPICS:
         if topic not in run_log.topics:
             raise LogFormatError(f"{run_log.path}: no {topic} channel, cannot verify")
+    check_layouts(run_log, VERIFY_TOPICS)
     sensor = run_log.topics["/sensor"].values
     command = run_log.topics["/command"].values
     timing = run_log.topics["/timing"].values

@@ -1,12 +1,13 @@
 """A bounded, paced flood of foreign traffic on one ballbeam bus: the bus-noise test's third node.
 
     python tests/helpers/flood.py --channel ff11:... [--rate-hz 3000] [--max-frames 20000]
-        [--max-seconds 3] [--seed 0] [--wait-for-command 30]
+        [--max-seconds 3] [--seed 0] [--start-on command|sensor] [--wait 30] [--raw-weight 4]
 
-It waits (at most ``--wait-for-command`` seconds) until the controller's first *enabled*
-voltage command is on the bus, so the flood lands on a run that is cycling, then sends for at
-most ``--max-seconds`` and at most ``--max-frames`` frames, paced on absolute deadlines in
-1 ms bursts (never faster than ``--rate-hz``), and prints one JSON object: what it sent, by kind.
+It waits (at most ``--wait`` seconds) for its cue on the bus: the controller's first *enabled*
+voltage command (``command``: the run is cycling) or the plant's first sensor frame
+(``sensor``: the controller is still starting up); then it sends for at most
+``--max-seconds`` and at most ``--max-frames`` frames, paced on absolute deadlines in 1 ms
+bursts (never faster than ``--rate-hz``), and prints one JSON object: what it sent, by kind.
 
 What it sends (seeded):
 
@@ -39,6 +40,8 @@ from collections import Counter
 import can
 import msgpack
 
+from ballbeam.config import BusSection
+from ballbeam.runtime.bus import open_bus
 from ballbeam.runtime.frames import (
     SENSOR_ID,
     TRUTH_ANGLE_ID,
@@ -126,20 +129,21 @@ def make_frame(
     raise ValueError(f"unknown kind {kind!r}")
 
 
-def _wait_for_enabled_command(bus: can.BusABC, contract: FrameContract, timeout_s: float) -> bool:
+def _wait_for_cue(bus: can.BusABC, contract: FrameContract, cue: str, timeout_s: float) -> bool:
+    wanted = VOLTAGE_COMMAND_ID if cue == "command" else SENSOR_ID
     give_up = time.monotonic() + timeout_s
     while (remaining := give_up - time.monotonic()) > 0:
         try:
             message = bus.recv(timeout=min(remaining, 0.1))
         except can.CanOperationError:
             continue
-        if message is None or message.arbitration_id != VOLTAGE_COMMAND_ID:
+        if message is None or message.arbitration_id != wanted or message.is_extended_id:
             continue
         try:
-            command = contract.decode(message.arbitration_id, bytes(message.data))
+            frame = contract.decode(message.arbitration_id, bytes(message.data))
         except ValueError:
             continue
-        if getattr(command, "enable", False):
+        if cue == "sensor" or getattr(frame, "enable", False):
             return True
     return False
 
@@ -152,27 +156,32 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rate-hz", type=int, default=3000)
     parser.add_argument("--max-frames", type=int, default=20_000)
     parser.add_argument("--max-seconds", type=float, default=3.0)
-    parser.add_argument("--wait-for-command", type=float, default=30.0)
+    parser.add_argument("--start-on", choices=("command", "sensor"), default="command")
+    parser.add_argument("--wait", type=float, default=30.0)
+    parser.add_argument("--raw-weight", type=int, default=dict(KINDS)["raw_datagram"],
+                        help="relative weight of raw datagrams (the others sum to 96)")
     args = parser.parse_args(argv)
     address = ipaddress.IPv6Address(args.channel)  # ValueError for anything but IPv6
     if not address.is_multicast or address.packed[1] & 0x0F != 1:
         parser.error(f"{args.channel} is not an interface-local (ff11::) multicast group")
     if not (0 < args.rate_hz <= 10_000 and 0 < args.max_frames <= 20_000
-            and 0 < args.max_seconds <= 3.0 and 0 < args.wait_for_command <= 60):
+            and 0 < args.max_seconds <= 3.0 and 0 < args.wait <= 60
+            and 0 <= args.raw_weight <= 1000):
         parser.error("out of bounds: rate ≤ 10 kHz, ≤ 20k frames, ≤ 3 s, wait ≤ 60 s")
 
     rng = random.Random(args.seed)
     contract = FrameContract.load()
-    bus = can.Bus(interface="udp_multicast", channel=args.channel, port=args.port, hop_limit=1)
+    bus = open_bus(BusSection(channel=args.channel, port=args.port))  # hears its group only
     raw = socket.socket(socket.AF_INET6, socket.SOCK_DGRAM)
     raw.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_HOPS, struct.pack("@I", 1))
     sent: Counter[str] = Counter()
     try:
-        if not _wait_for_enabled_command(bus, contract, args.wait_for_command):
-            print(json.dumps({"error": "no enabled command seen", "sent": 0}))
+        if not _wait_for_cue(bus, contract, args.start_on, args.wait):
+            print(json.dumps({"error": f"no {args.start_on} frame seen", "sent": 0}))
             return 1
         kinds = [kind for kind, _ in KINDS]
-        weights = [weight for _, weight in KINDS]
+        weights = [args.raw_weight if kind == "raw_datagram" else weight
+                   for kind, weight in KINDS]
         per_burst = max(1, args.rate_hz * BURST_PERIOD_NS // 1_000_000_000)
         start_ns = due_ns = time.monotonic_ns()
         stop_ns = start_ns + int(args.max_seconds * 1e9)

@@ -32,6 +32,7 @@ class ControllerDesign:
     reference_input_v: np.ndarray
     voltage_limit_v: float
     guard: AngleGuard | None  # None: clamp to ±V only
+    initial_state: np.ndarray  # the planned start: supplies the rates no sensor measures
     angle_per_count: float  # measurement units (57·θ) per encoder count
     position_per_count: float  # measurement units (100·x) per ADC count
 
@@ -75,7 +76,9 @@ def control_cycle(
     if state.prediction is None:
         if reading is None:
             raise ValueError("the first control cycle needs a sensor reading")
-        estimate = initial_estimate(design.observer, design.measurement(reading))
+        estimate = initial_estimate(
+            design.observer, design.measurement(reading), design.initial_state
+        )
     elif reading is None:
         estimate = state.prediction  # coast on the model
     else:

@@ -23,7 +23,7 @@ class AngleGuard:
     alpha_beta: float  # model αβ [1/s]
     brake_v: float  # braking voltage counted on (V_max less a dead-zone allowance)
     voltage_limit_v: float
-    Ad: np.ndarray  # (4, 4) one control period
+    Ad: np.ndarray  # (4, 4) over the look-ahead: one period, plus the latency in real time
     Bd: np.ndarray  # (4, 1)
 
 

@@ -121,8 +121,14 @@ def correct(gains: ObserverGains, prediction: np.ndarray, measurement: np.ndarra
     return result
 
 
-def initial_estimate(gains: ObserverGains, measurement: np.ndarray) -> np.ndarray:
-    """The state that explains the first measurement (2,) exactly, with zero rates (4,)."""
+def initial_estimate(
+    gains: ObserverGains, measurement: np.ndarray, prior_state: np.ndarray | None = None
+) -> np.ndarray:
+    """The state (4,) that explains the first measurement (2,) exactly; the unmeasured rates
+    come from ``prior_state`` (the scenario's known start), or zero."""
     # C measures θ and x only, so the least-squares solution of minimum norm sets θ̇ = ẋ = 0.
     result: np.ndarray = np.linalg.lstsq(gains.C, np.asarray(measurement, dtype=float))[0]
+    if prior_state is not None:
+        unmeasured = ~np.any(gains.C != 0.0, axis=0)
+        result[unmeasured] = np.asarray(prior_state, dtype=float)[unmeasured]
     return result

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import ipaddress
 import secrets
+import socket
+import sys
 import time
 from collections.abc import Callable
 from typing import Any
@@ -52,21 +54,67 @@ def check_stays_on_host(bus: BusSection) -> None:
 
 
 def isolated_group(group: str) -> str:
-    """The same group prefix with random low 64 bits: a private bus for one run."""
+    """The same group prefix with random low 64 bits. Not private on its own: python-can
+    binds the wildcard address, so a socket hears every joined group on its port; a private
+    bus needs its own port too (see free_udp_port)."""
     address = ipaddress.IPv6Address(group)
     prefix = int(address) >> 64 << 64
     return str(ipaddress.IPv6Address(prefix | secrets.randbits(64)))
 
 
+# Linux hands a multicast datagram to every socket bound to its port as soon as any socket on
+# the host has joined its group, unless the socket opts out (on by default). Two runs on
+# different private groups but the same port would hear each other's frames, which are valid
+# frames. python-can does not opt out; open_bus does. (BSD-derived systems deliver only the
+# groups a socket joined.) Values from linux/in6.h and linux/in.h.
+IPV6_MULTICAST_ALL = 29
+IP_MULTICAST_ALL = 49
+
+
+def _hear_own_group_only(opened: can.BusABC) -> None:
+    """Make a udp_multicast bus's socket receive only the group it joined (Linux)."""
+    if not sys.platform.startswith("linux"):
+        return
+    sock = getattr(getattr(opened, "_multicast", None), "_socket", None)
+    if not isinstance(sock, socket.socket):
+        raise BusError(
+            "cannot reach python-can's udp_multicast socket to make it hear only its own "
+            "group; without that, runs on other groups of the same port would be heard"
+        )
+    if sock.family == socket.AF_INET6:
+        level, option = socket.IPPROTO_IPV6, IPV6_MULTICAST_ALL
+    else:
+        level, option = socket.IPPROTO_IP, IP_MULTICAST_ALL
+    try:
+        sock.setsockopt(level, option, 0)
+    except OSError as error:
+        raise BusError(
+            f"cannot make the udp_multicast socket hear only its own group: {error}"
+        ) from error
+
+
+def free_udp_port() -> int:
+    """A UDP port no socket on this host holds right now (the kernel's pick)."""
+    import socket
+
+    with socket.socket(socket.AF_INET6, socket.SOCK_DGRAM) as probe:
+        probe.bind(("::1", 0))
+        port: int = probe.getsockname()[1]
+    return port
+
+
 def open_bus(bus: BusSection) -> can.BusABC:
-    """A python-can bus for ``bus``; BusError with a remedy when it cannot be opened."""
+    """A python-can bus for ``bus``; BusError with a remedy when it cannot be opened.
+
+    A ``udp_multicast`` bus hears its own group only, not other groups on the same port.
+    """
     check_stays_on_host(bus)
     options: dict[str, Any] = dict(bus.options)
     if bus.interface == "udp_multicast":
         options.setdefault("port", bus.port)
         options.setdefault("hop_limit", 1)
     try:
-        return can.Bus(interface=bus.interface, channel=bus.channel, **options)
+        opened = can.Bus(interface=bus.interface, channel=bus.channel, **options)
     except ImportError as error:
         raise BusError(
             f"bus interface {bus.interface!r} needs a package that is not installed: {error}"
@@ -78,6 +126,16 @@ def open_bus(bus: BusSection) -> can.BusABC:
         raise BusError(
             f"cannot open bus {bus.interface}:{bus.channel}: {error}{hint}"
         ) from error
+    if bus.interface == "udp_multicast":
+        try:
+            _hear_own_group_only(opened)
+        except BusError:
+            opened.shutdown()
+            raise
+    return opened
+
+
+MAX_MALFORMED_PER_CALL = 64
 
 
 def recv_frame(
@@ -88,10 +146,12 @@ def recv_frame(
     A datagram python-can cannot turn into a message (udp_multicast: not msgpack, or not a
     valid frame) raises CanOperationError from inside ``recv``; it is reported to
     ``on_malformed`` and skipped, and the wait goes on until ``timeout_s`` from the call.
-    Returns a message, or None when the time is up. Failures of the socket itself (an
-    OSError underneath) still raise.
+    Returns a message, or None when the time is up (with ``timeout_s`` 0: once
+    MAX_MALFORMED_PER_CALL datagrams were skipped, so that a stream of them cannot hold the
+    caller). Failures of the socket itself (an OSError underneath) still raise.
     """
     deadline = time.monotonic() + timeout_s
+    skipped = 0
     while True:
         try:
             return bus.recv(timeout=max(0.0, deadline - time.monotonic()))
@@ -100,6 +160,9 @@ def recv_frame(
                 raise
             cause = f": {error.__cause__}" if error.__cause__ is not None else ""
             on_malformed(f"{error}{cause}")
+            skipped += 1
+            if skipped >= MAX_MALFORMED_PER_CALL and time.monotonic() >= deadline:
+                return None
 
 
 def socketcan_available() -> bool:

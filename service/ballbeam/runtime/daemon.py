@@ -231,6 +231,11 @@ class ControllerDaemon:
 
     # -- one cycle ----------------------------------------------------------------------------
     def _cycle(self) -> None:
+        if self.recorder.error is not None and not self.stop.is_set():
+            # No run goes on unrecorded: this cycle still commands, then the loop stops at 0 V.
+            log.error("recording failed (%s): stopping the run", self.recorder.error)
+            self.stats.end_reason = "recorder_failed"
+            self.stop.set("recorder_failed")
         cycle = self.state.cycle
         reading: SensorReading | None = None
         sensor = self.latest_sensor
@@ -383,7 +388,7 @@ class ControllerDaemon:
         phases = [first_arrival_ns % self.period_ns]
         give_up = time.monotonic() + PHASE_PROBE_S
         while len(phases) < PHASE_PROBE_FRAMES and time.monotonic() < give_up:
-            message = self.bus.recv(timeout=PHASE_PROBE_S)
+            message = self._recv(PHASE_PROBE_S)
             if message is None:
                 break
             self.log_time_ns = self._wall_ns()
@@ -412,8 +417,13 @@ class ControllerDaemon:
                 self.stats.overruns += 1
                 self.stats.skipped_periods += tick.skipped
                 self._coast_skipped(tick.skipped)
+            # Read what has arrived, for half a period at most: a flood must not hold the loop
+            # (the rest is read next cycle, or dropped by the kernel if its buffer overflows).
+            drain_until_ns = tick.start_ns + self.period_ns // 2
             while (message := self._recv(0.0)) is not None:
                 self._handle(message)
+                if time.monotonic_ns() >= drain_until_ns:
+                    break
             self._cycle()
             self._record_timing(tick.deadline_ns, tick.start_ns, tick.skipped)
 
@@ -421,6 +431,7 @@ class ControllerDaemon:
         return self.wall_origin_ns + monotonic_ns - self.mono_origin_ns
 
     def _coast_skipped(self, count: int) -> None:
+        self.cycles_since_sensor += count  # skipped periods brought no sensor frame either
         if self.state.prediction is None:
             self.state = ControllerState(cycle=self.state.cycle + count)
             return

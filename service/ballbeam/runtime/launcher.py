@@ -16,7 +16,7 @@ from pathlib import Path
 
 from ballbeam.config import Config, load_config
 from ballbeam.errors import BallbeamError
-from ballbeam.runtime.bus import check_stays_on_host, isolated_group
+from ballbeam.runtime.bus import check_stays_on_host, free_udp_port, isolated_group
 from ballbeam.runtime.nodes import new_log_path
 
 STOP_GRACE_S = 5.0
@@ -62,8 +62,10 @@ def launch_run(
     check_stays_on_host(config.bus)
     child_overrides = list(overrides)
     if config.bus.interface == "udp_multicast" and config.bus.isolate_runs:
+        # Group and port both: the sockets bind the wildcard address, so another run on the
+        # same port would be heard whatever its group.
         group = isolated_group(config.bus.channel)
-        child_overrides.append(f"bus.channel='{group}'")
+        child_overrides += [f"bus.channel='{group}'", f"bus.port={free_udp_port()}"]
         config = load_config(config_path, child_overrides)
     log_path = new_log_path(config.run.log_dir, config.plan.kind)
     base = [sys.executable, "-m", "ballbeam"]
