@@ -78,7 +78,7 @@ class MemoryWatch:
             quarter = max(1, len(kib) // 4)
             result[name] = {
                 "peak_rss_mib": float(kib.max() / 1024),
-                "rss_first_quarter_mib": float(kib[quarter: 2 * quarter].mean() / 1024),
+                "rss_first_quarter_mib": float(kib[quarter : 2 * quarter].mean() / 1024),
                 "rss_last_quarter_mib": float(kib[-quarter:].mean() / 1024),
             }
         return result
@@ -104,8 +104,11 @@ REALTIME_VARIANTS: dict[str, tuple[str, ...]] = {
     "sleep + spin 200 µs": ("controller.spin_us=200",),
     "spin + CPU affinity": ("controller.spin_us=200", "controller.cpu=1", "plant.cpu=0"),
     "spin + affinity + SCHED_FIFO": (
-        "controller.spin_us=200", "controller.cpu=1", "plant.cpu=0",
-        "controller.realtime_priority=50", "plant.realtime_priority=40",
+        "controller.spin_us=200",
+        "controller.cpu=1",
+        "plant.cpu=0",
+        "controller.realtime_priority=50",
+        "plant.realtime_priority=40",
     ),
 }
 
@@ -115,25 +118,34 @@ def bench_realtime(duration_s: float) -> list[dict[str, Any]]:
     for rate_hz in (1000, 2000):
         for variant, overrides in REALTIME_VARIANTS.items():
             summary = bus_run(
-                PAPER, "run.mode='realtime'", f"run.duration_s={duration_s}",
-                f"controller.rate_hz={rate_hz}", f"plant.sensor_rate_hz={rate_hz}", *overrides,
+                PAPER,
+                "run.mode='realtime'",
+                f"run.duration_s={duration_s}",
+                f"controller.rate_hz={rate_hz}",
+                f"plant.sensor_rate_hz={rate_hz}",
+                *overrides,
             )
-            rows.append({
-                "rate_hz": rate_hz,
-                "variant": variant,
-                "cycles": summary["cycles"],
-                "lateness_p50_us": summary["lateness_p50_us"],
-                "lateness_p99_us": summary["lateness_p99_us"],
-                "lateness_p999_us": summary["lateness_p999_us"],
-                "lateness_max_us": summary["lateness_max_us"],
-                "overruns": summary["overruns"],
-                "latency_p50_us": summary["latency_p50_us"],
-                "latency_p99_us": summary["latency_p99_us"],
-                "coasted_cycles": summary["coasted_cycles"],
-                "settle_time_s": summary["settle_time_s"],
-            })
-            print(f"  realtime {rate_hz} Hz, {variant}: p99 {summary['lateness_p99_us']:.1f} µs,"
-                  f" overruns {summary['overruns']}", file=sys.stderr)
+            rows.append(
+                {
+                    "rate_hz": rate_hz,
+                    "variant": variant,
+                    "cycles": summary["cycles"],
+                    "lateness_p50_us": summary["lateness_p50_us"],
+                    "lateness_p99_us": summary["lateness_p99_us"],
+                    "lateness_p999_us": summary["lateness_p999_us"],
+                    "lateness_max_us": summary["lateness_max_us"],
+                    "overruns": summary["overruns"],
+                    "latency_p50_us": summary["latency_p50_us"],
+                    "latency_p99_us": summary["latency_p99_us"],
+                    "coasted_cycles": summary["coasted_cycles"],
+                    "settle_time_s": summary["settle_time_s"],
+                }
+            )
+            print(
+                f"  realtime {rate_hz} Hz, {variant}: p99 {summary['lateness_p99_us']:.1f} µs,"
+                f" overruns {summary['overruns']}",
+                file=sys.stderr,
+            )
     return rows
 
 
@@ -171,9 +183,8 @@ def bench_plan(repeats: int) -> dict[str, Any]:
         rows[name] = {
             "duration_s": plan.duration_s,
             "plan_ms": 1e3 * _median_s(lambda config=config: make_plan(config), repeats),
-            "plan_plus_synthesis_ms": 1e3 * _median_s(
-                lambda config=config: controller_design(config), repeats
-            ),
+            "plan_plus_synthesis_ms": 1e3
+            * _median_s(lambda config=config: controller_design(config), repeats),
         }
     # Rate-limited planner against Ruckig on the same inputs (paper start, both slopes).
     constants = load_config(PAPER).constants()
@@ -236,8 +247,9 @@ def bench_replay(duration_s: float) -> dict[str, Any]:
 
 # -- 5. control quality against the physical limit -----------------------------------------------
 def bench_quality() -> dict[str, Any]:
-    limit_config = load_config(PAPER, ["plan.kind='time_optimal'", "plan.voltage_margin_v=0",
-                                       "plan.theta_margin_deg=0"])
+    limit_config = load_config(
+        PAPER, ["plan.kind='time_optimal'", "plan.voltage_margin_v=0", "plan.theta_margin_deg=0"]
+    )
     minimum_time_s = make_plan(limit_config).duration_s
     rows: dict[str, Any] = {"true_minimum_time_s": minimum_time_s}
     for name, path in PATHS.items():

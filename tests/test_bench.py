@@ -29,13 +29,19 @@ SETTLE_TOLERANCE_S = 0.3
 def ballbeam(*args: str, timeout_s: float = 300) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
         [sys.executable, "-m", "ballbeam", *args],
-        capture_output=True, text=True, timeout=timeout_s, check=False,
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,
+        check=False,
     )
 
 
 def run_json(config: Path, tmp_path: Path, *overrides: str) -> dict[str, object]:
-    sets = [item for override in (f"run.log_dir='{tmp_path}'", *overrides)
-            for item in ("--set", override)]
+    sets = [
+        item
+        for override in (f"run.log_dir='{tmp_path}'", *overrides)
+        for item in ("--set", override)
+    ]
     result = ballbeam("run", str(config), *sets, "--json")
     assert result.returncode == 0, result.stderr
     summary: dict[str, object] = json.loads(result.stdout)
@@ -97,8 +103,9 @@ def test_realtime_run_at_1khz_settles_like_offline(tmp_path: Path, offline_settl
 
 def test_a_bus_group_that_leaves_the_host_is_refused(tmp_path: Path) -> None:
     for group in ("ff15:7079:7468:6f6e:6465:6d6f:6d63:6173", "239.74.163.2"):
-        result = ballbeam("run", "--set", f"bus.channel='{group}'",
-                          "--set", f"run.log_dir='{tmp_path}'")
+        result = ballbeam(
+            "run", "--set", f"bus.channel='{group}'", "--set", f"run.log_dir='{tmp_path}'"
+        )
         assert result.returncode == 2
         assert "leaves this host" in result.stderr
         assert "Traceback" not in result.stderr
@@ -115,8 +122,10 @@ def _vcan_interface() -> str | None:
 
 
 @pytest.mark.vcan
-@pytest.mark.skipif(_vcan_interface() is None,
-                    reason="no SocketCAN vcan interface on this kernel (see README to create one)")
+@pytest.mark.skipif(
+    _vcan_interface() is None,
+    reason="no SocketCAN vcan interface on this kernel (see README to create one)",
+)
 def test_lockstep_run_over_socketcan_vcan(tmp_path: Path, offline_settle_s: float) -> None:
     interface = _vcan_interface()
     summary = run_json(PAPER, tmp_path, "bus.interface='socketcan'", f"bus.channel='{interface}'")

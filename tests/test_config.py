@@ -54,7 +54,9 @@ def test_extends_merges_and_overrides(tmp_path: Path) -> None:
 
 
 def test_overrides_are_toml_values_validated_like_the_file() -> None:
-    config = load_config(None, ["plan.kind=rate_limited", "tracker.q=[1, 2, 3, 4]", "run.duration_s=2"])
+    config = load_config(
+        None, ["plan.kind=rate_limited", "tracker.q=[1, 2, 3, 4]", "run.duration_s=2"]
+    )
     assert config.plan.kind == "rate_limited"
     assert config.tracker.q == (1.0, 2.0, 3.0, 4.0)
     assert config.run.duration_s == 2.0
@@ -113,15 +115,27 @@ def test_config_is_immutable() -> None:
 
 
 _toml_scalars = st.one_of(
-    st.integers(-10**6, 10**6).map(str),
+    st.integers(-(10**6), 10**6).map(str),
     st.floats(allow_nan=False, allow_infinity=False, width=32).map(repr),
     st.text(alphabet="abcxyz_", max_size=6).map(lambda text: f"'{text}'"),
     st.just("true"),
     st.just("[1, 2]"),
 )
 _keys = st.sampled_from(
-    ["plan.kind", "plan.step_s", "tracker.r", "tracker.q", "run.duration_s", "plant.seed",
-     "controller.rate_hz", "limits.voltage_v", "bus.port", "initial.theta_deg", "x.y", "plan"]
+    [
+        "plan.kind",
+        "plan.step_s",
+        "tracker.r",
+        "tracker.q",
+        "run.duration_s",
+        "plant.seed",
+        "controller.rate_hz",
+        "limits.voltage_v",
+        "bus.port",
+        "initial.theta_deg",
+        "x.y",
+        "plan",
+    ]
 )
 
 

@@ -22,13 +22,13 @@ def guard() -> AngleGuard:
 
 def test_stopping_distance_matches_integration(guard: AngleGuard) -> None:
     for rate in (0.5, 3.0, 9.0):
+
         def braking(_t: float, y: np.ndarray) -> list[float]:
             return [y[1], -guard.alpha_beta * y[1] - guard.alpha * guard.brake_v]
 
         stopped = lambda _t, y: y[1]  # noqa: E731
         stopped.terminal = True  # type: ignore[attr-defined]
-        solution = solve_ivp(braking, (0, 1), [0.0, rate], events=stopped, rtol=1e-11,
-                             atol=1e-13)
+        solution = solve_ivp(braking, (0, 1), [0.0, rate], events=stopped, rtol=1e-11, atol=1e-13)
         assert stopping_distance_rad(guard, rate) == pytest.approx(solution.y[0, -1], rel=1e-7)
     assert stopping_distance_rad(guard, -1.0) == 0.0
 

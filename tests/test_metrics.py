@@ -45,9 +45,11 @@ def test_metrics_on_a_known_trace() -> None:
 
 def test_overshoot_is_measured_past_zero_on_the_far_side_of_the_start() -> None:
     t = np.arange(4) * 0.01
-    from_left = compute_metrics(t, _states(np.zeros(4), np.array([-0.1, 0.0, 0.003, 0.0])),
-                                np.zeros(4), np.zeros(4), 1.0)
+    from_left = compute_metrics(
+        t, _states(np.zeros(4), np.array([-0.1, 0.0, 0.003, 0.0])), np.zeros(4), np.zeros(4), 1.0
+    )
     assert from_left.overshoot_mm == pytest.approx(3.0)
-    no_overshoot = compute_metrics(t, _states(np.zeros(4), np.array([0.1, 0.05, 0.01, 0.0])),
-                                   np.zeros(4), np.zeros(4), 1.0)
+    no_overshoot = compute_metrics(
+        t, _states(np.zeros(4), np.array([0.1, 0.05, 0.01, 0.0])), np.zeros(4), np.zeros(4), 1.0
+    )
     assert no_overshoot.overshoot_mm == 0.0

@@ -6,12 +6,13 @@ import math
 
 import numpy as np
 import pytest
+from numpy.testing import assert_allclose
+from scipy.integrate import solve_ivp
+
 from ballbeam.core.model import BALL_POSITION, BALL_VELOCITY, THETA, THETA_RATE, PlantConstants
 from ballbeam.core.planning.bang_bang import plan_bang_bang
 from ballbeam.core.plans import at_time
 from ballbeam.errors import PlanningError
-from numpy.testing import assert_allclose
-from scipy.integrate import solve_ivp
 
 CONSTANTS = PlantConstants()
 THETA_MAX_RAD = math.radians(52.0)

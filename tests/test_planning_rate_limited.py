@@ -7,6 +7,11 @@ import math
 import numpy as np
 import pytest
 import ruckig
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from numpy.testing import assert_allclose
+from scipy.integrate import solve_ivp
+
 from ballbeam.core.model import BALL_POSITION, BALL_VELOCITY, THETA, THETA_RATE, PlantConstants
 from ballbeam.core.planning.rate_limited import (
     RateLimitedPlan,
@@ -14,10 +19,6 @@ from ballbeam.core.planning.rate_limited import (
     solve_jerk_profile,
 )
 from ballbeam.errors import PlanningError
-from hypothesis import given, settings
-from hypothesis import strategies as st
-from numpy.testing import assert_allclose
-from scipy.integrate import solve_ivp
 
 CONSTANTS = PlantConstants()
 GAMMA = CONSTANTS.gamma

@@ -74,8 +74,8 @@ def test_nonlinear_ball_agrees_with_linear_for_small_angles_and_departs_for_larg
     large = np.array([math.radians(50), 0.0, 0.0, 0.0])
     params = _params()
     b = nonlinear.advance(large, 0.0, 1)
-    expected_accel = -(5 / 7) * params.gravity_m_per_s2 * params.arm_to_beam_ratio * math.sin(
-        math.radians(50)
+    expected_accel = (
+        -(5 / 7) * params.gravity_m_per_s2 * params.arm_to_beam_ratio * math.sin(math.radians(50))
     )
     assert_allclose(b[2] / params.substep_s, expected_accel, rtol=1e-6)
 

@@ -18,8 +18,13 @@ GOLDEN = Path(__file__).parent / "data" / "golden_paper_1s.mcap"
 
 
 def ballbeam(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "ballbeam", *args], capture_output=True,
-                          text=True, timeout=120, check=False)
+    return subprocess.run(
+        [sys.executable, "-m", "ballbeam", *args],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
 
 
 def test_golden_log_metrics_are_pinned() -> None:
@@ -94,4 +99,3 @@ def test_missing_log_is_one_clear_error(tmp_path: Path) -> None:
     completed = ballbeam("replay", str(tmp_path / "absent.mcap"))
     assert completed.returncode == 2
     assert completed.stderr.count("\n") == 1 and "cannot open log" in completed.stderr
-

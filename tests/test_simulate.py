@@ -46,8 +46,14 @@ def test_simulate_json_and_plot(tmp_path: Path, capsys: pytest.CaptureFixture[st
     plot = tmp_path / "run.png"
     assert main(["simulate", "--set", "run.duration_s=2.5", "--json", "--plot", str(plot)]) == 0
     payload = json.loads(capsys.readouterr().out)
-    for key in ("settle_time_s", "overshoot_mm", "max_abs_theta_deg", "theta_violation_s",
-                "max_abs_u_v", "tracking_rms_mm"):
+    for key in (
+        "settle_time_s",
+        "overshoot_mm",
+        "max_abs_theta_deg",
+        "theta_violation_s",
+        "max_abs_u_v",
+        "tracking_rms_mm",
+    ):
         assert key in payload
     assert plot.stat().st_size > 10_000
 
@@ -56,7 +62,8 @@ def test_time_optimal_plan_is_shorter_than_any_rate_limited_one_at_its_own_volta
     """Sanity between planners: the full model under 5 V cannot beat the jerk-limited ideal
     with slope 5/β, and the 4.5 V plan is longer than the 5 V one."""
     full = make_plan(load_config(None, ["plan.voltage_margin_v=0", "plan.theta_margin_deg=0"]))
-    ideal = make_plan(load_config(None, ["plan.kind=rate_limited",
-                                         f"plan.servo_rate_limit_rad_s={5 / 0.5369}"]))
+    ideal = make_plan(
+        load_config(None, ["plan.kind=rate_limited", f"plan.servo_rate_limit_rad_s={5 / 0.5369}"])
+    )
     margin = make_plan(load_config(None))
     assert ideal.duration_s < full.duration_s < margin.duration_s

@@ -110,8 +110,13 @@ def command_simulate(args: argparse.Namespace) -> int:
             title=f"offline closed loop, {config.plan.kind} path",
         )
     if args.json:
-        print_json({"plan_kind": config.plan.kind, "plan_duration_s": result.design.plan.duration_s,
-                    **metrics})
+        print_json(
+            {
+                "plan_kind": config.plan.kind,
+                "plan_duration_s": result.design.plan.duration_s,
+                **metrics,
+            }
+        )
     else:
         print_table(
             f"offline simulation ({config.plan.kind} path, "
@@ -211,23 +216,37 @@ def command_replay(args: argparse.Namespace) -> int:
         from ballbeam.plotting import plot_run
 
         series = run_series(run_log)
-        reference = np.array([
-            np.interp(series.truth_time_s, series.reference_time_s,
-                      series.reference_states[:, column], right=0.0)
-            for column in range(4)
-        ]).T
+        reference = np.array(
+            [
+                np.interp(
+                    series.truth_time_s,
+                    series.reference_time_s,
+                    series.reference_states[:, column],
+                    right=0.0,
+                )
+                for column in range(4)
+            ]
+        ).T
         voltage = np.interp(series.truth_time_s, series.cycle_time_s, series.voltage_v)
         plot_run(
-            args.plot, series.truth_time_s, series.truth_states, reference, voltage,
-            limit_from_log(run_log), title=f"replay of {args.log}",
-            lateness_us=series.lateness_ns * 1e-3, lateness_time_s=series.cycle_time_s,
+            args.plot,
+            series.truth_time_s,
+            series.truth_states,
+            reference,
+            voltage,
+            limit_from_log(run_log),
+            title=f"replay of {args.log}",
+            lateness_us=series.lateness_ns * 1e-3,
+            lateness_time_s=series.cycle_time_s,
         )
     if args.json:
         print_json(summary)
     else:
         if run_log.truncated:
-            print(f"note: the log was cut short ({run_log.truncation_reason}); "
-                  f"read up to {summary['last_time_s']:.3f} s")
+            print(
+                f"note: the log was cut short ({run_log.truncation_reason}); "
+                f"read up to {summary['last_time_s']:.3f} s"
+            )
         print_table(f"replay of {args.log}", summary)
     return exit_code
 
@@ -292,7 +311,8 @@ def build_parser() -> argparse.ArgumentParser:
     replay.add_argument("--json", action="store_true", help="print one JSON object")
     replay.add_argument("--plot", metavar="PNG", help="write a paper-style figure with timing")
     replay.add_argument(
-        "--verify", action="store_true",
+        "--verify",
+        action="store_true",
         help="re-run the controller on the recorded sensor frames; exit 1 on any difference",
     )
     replay.set_defaults(handler=command_replay)
@@ -303,10 +323,17 @@ def build_parser() -> argparse.ArgumentParser:
     regress_parser.add_argument(
         "directory", nargs="?", default="configs/scenarios", help="default: configs/scenarios"
     )
-    regress_parser.add_argument("--jobs", type=_positive_int, default=None,
-                                help="scenarios at once (default: one per core)")
-    regress_parser.add_argument("--set", dest="overrides", action="append", default=[],
-                                metavar="KEY=VALUE", help="override a key in every scenario")
+    regress_parser.add_argument(
+        "--jobs", type=_positive_int, default=None, help="scenarios at once (default: one per core)"
+    )
+    regress_parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a key in every scenario",
+    )
     regress_parser.add_argument("--json", action="store_true", help="print one JSON object")
     regress_parser.add_argument("--junit-xml", metavar="PATH", help="write a JUnit XML report")
     regress_parser.set_defaults(handler=command_regress)

@@ -133,7 +133,9 @@ class ControllerSection(_Section):
         3, ge=1, le=10000, description="periods without a sensor frame before a fault (0 V)"
     )
     plant_lost_s: float = Field(
-        0.5, gt=0, le=3600,
+        0.5,
+        gt=0,
+        le=3600,
         description="sensor silence after which the run ends (shorter gaps: 0 V, then resume)",
     )
     phase_offset_us: int = Field(
@@ -150,7 +152,9 @@ class ControllerSection(_Section):
         0.3, ge=0, le=10, description="the guard stops the servo this far inside the limit"
     )
     theta_guard_latency_us: int = Field(
-        1000, ge=0, le=100_000,
+        1000,
+        ge=0,
+        le=100_000,
         description="real time: command latency the guard allows for (it looks this much further)",
     )
     theta_guard_brake_v: float | None = Field(
@@ -202,7 +206,6 @@ class PlantSection(_Section):
     sensor_loss: float = Field(0.0, ge=0, lt=1, description="fault injection: drop fraction")
 
 
-
 class SensorsSection(_Section):
     """Sensor hardware both sides agree on: frames carry raw encoder and ADC counts."""
 
@@ -217,7 +220,7 @@ class SensorsSection(_Section):
 
     def adc_step_m(self, beam_length_m: float) -> float:
         volts_per_m = self.beam_span_v / beam_length_m
-        return self.adc_range_v / 2**self.adc_bits / volts_per_m
+        return self.adc_range_v / float(2**self.adc_bits) / volts_per_m
 
 
 class RunSection(_Section):

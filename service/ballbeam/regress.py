@@ -83,10 +83,13 @@ def run_scenario(path: Path, overrides: Iterable[str] = ()) -> ScenarioResult:
         result = launch_run(str(path), overrides)
         summary = summarise(read_log(result.log_path), config.limits.theta_rad)
     except BallbeamError as error:
-        return ScenarioResult(path.stem, path, (), str(error), None,
-                              time.monotonic() - started)
+        return ScenarioResult(path.stem, path, (), str(error), None, time.monotonic() - started)
     return ScenarioResult(
-        path.stem, path, evaluate(config.expect, summary), None, str(result.log_path),
+        path.stem,
+        path,
+        evaluate(config.expect, summary),
+        None,
+        str(result.log_path),
         time.monotonic() - started,
     )
 
@@ -123,11 +126,20 @@ def table(results: list[ScenarioResult]) -> str:
         for check in result.checks:
             value = check.value
             shown = f"{value:.4g}" if isinstance(value, float) else str(value)
-            rows.append((result.name, check.metric, check.bound,
-                         "never" if value is None else shown, "pass" if check.passed else "FAIL"))
+            rows.append(
+                (
+                    result.name,
+                    check.metric,
+                    check.bound,
+                    "never" if value is None else shown,
+                    "pass" if check.passed else "FAIL",
+                )
+            )
     widths = [max(len(row[column]) for row in rows) for column in range(5)]
-    lines = ["  ".join(cell.ljust(width) for cell, width in zip(row, widths, strict=True))
-             for row in rows]
+    lines = [
+        "  ".join(cell.ljust(width) for cell, width in zip(row, widths, strict=True))
+        for row in rows
+    ]
     lines.insert(1, "  ".join("-" * width for width in widths))
     passed = sum(result.passed for result in results)
     lines.append(f"\n{passed}/{len(results)} scenarios passed")
@@ -146,8 +158,12 @@ def as_json(results: list[ScenarioResult]) -> dict[str, Any]:
                 "log_path": result.log_path,
                 "wall_time_s": result.wall_time_s,
                 "checks": [
-                    {"metric": check.metric, "bound": check.bound, "value": check.value,
-                     "passed": check.passed}
+                    {
+                        "metric": check.metric,
+                        "bound": check.bound,
+                        "value": check.value,
+                        "passed": check.passed,
+                    }
                     for check in result.checks
                 ],
             }
@@ -165,7 +181,10 @@ def write_junit(results: list[ScenarioResult], path: Path) -> None:
     )
     for result in results:
         case = ElementTree.SubElement(
-            suite, "testcase", classname="scenarios", name=result.name,
+            suite,
+            "testcase",
+            classname="scenarios",
+            name=result.name,
             time=f"{result.wall_time_s:.3f}",
         )
         if result.error is not None:

@@ -60,9 +60,7 @@ def verify(run_log: RunLog) -> VerifyResult:
     command = run_log.topics["/command"].values
     timing = run_log.topics["/timing"].values
     count = min(len(sensor), len(command), len(timing))  # a truncated log: as far as it goes
-    if count and not (
-        np.array_equal(sensor["cycle"][:count], command["cycle"][:count])
-    ):
+    if count and not (np.array_equal(sensor["cycle"][:count], command["cycle"][:count])):
         raise LogFormatError(f"{run_log.path}: /sensor and /command cycles do not line up")
     design = controller_design(config)
     state = ControllerState()
