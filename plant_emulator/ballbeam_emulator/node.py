@@ -82,13 +82,16 @@ class PlantEmulator:
 
     def _send_sample(self) -> None:
         """Truth first, then the sensor frame, all with this sample's counter."""
-        if self.config.plant.sensor_loss and self.fault_rng.random() < self.config.plant.sensor_loss:
+        loss = self.config.plant.sensor_loss
+        if loss and self.fault_rng.random() < loss:
             self.counters.dropped_by_injection += 1
             truth_only = True
         else:
             truth_only = False
         theta, theta_rate, velocity, position = (float(v) for v in self.state)
-        self._send(TRUTH_ANGLE_ID, self.contract.encode_truth_angle(self.counter, theta, theta_rate))
+        self._send(
+            TRUTH_ANGLE_ID, self.contract.encode_truth_angle(self.counter, theta, theta_rate)
+        )
         self._send(TRUTH_BALL_ID, self.contract.encode_truth_ball(self.counter, position, velocity))
         if truth_only:
             return
@@ -127,7 +130,8 @@ class PlantEmulator:
             self.counters.rejected += 1
             return None
         assert isinstance(command, VoltageCommand)
-        if self.config.plant.command_loss and self.fault_rng.random() < self.config.plant.command_loss:
+        loss = self.config.plant.command_loss
+        if loss and self.fault_rng.random() < loss:
             self.counters.dropped_by_injection += 1
             return None
         if self.command_check.classify(command.counter) != "ok":

@@ -75,11 +75,13 @@ def _bad_crc_payload(rng: random.Random, arbitration_id: int) -> bytes:
 def _valid_payload(rng: random.Random, contract: FrameContract, arbitration_id: int) -> bytes:
     counter = rng.randrange(256)
     if arbitration_id == VOLTAGE_COMMAND_ID:
-        return contract.encode_voltage_command(counter, rng.choice((-5.0, 5.0)), True,
-                                               rng.randrange(256))
+        return contract.encode_voltage_command(
+            counter, rng.choice((-5.0, 5.0)), True, rng.randrange(256)
+        )
     if arbitration_id == SENSOR_ID:
-        return contract.encode_sensor(counter, rng.choice((-32768, 32767)),
-                                      rng.choice((-32768, 32767)), 0)
+        return contract.encode_sensor(
+            counter, rng.choice((-32768, 32767)), rng.choice((-32768, 32767)), 0
+        )
     if arbitration_id == TRUTH_ANGLE_ID:
         return contract.encode_truth_angle(counter, rng.uniform(-5, 5), rng.uniform(-50, 50))
     return contract.encode_truth_ball(counter, rng.uniform(-0.5, 0.5), rng.uniform(-5, 5))
@@ -92,40 +94,64 @@ def _raw_datagram(rng: random.Random) -> bytes:
     if choice == 1:
         return msgpack.packb([1, 2, 3])  # type: ignore[no-any-return]
     return msgpack.packb(  # type: ignore[no-any-return]
-        {"timestamp": 0.0, "arbitration_id": "0x101", "is_extended_id": False,
-         "is_remote_frame": False, "is_error_frame": False, "channel": None, "dlc": 8,
-         "data": bytes(8), "is_fd": False, "bitrate_switch": False,
-         "error_state_indicator": False},
+        {
+            "timestamp": 0.0,
+            "arbitration_id": "0x101",
+            "is_extended_id": False,
+            "is_remote_frame": False,
+            "is_error_frame": False,
+            "channel": None,
+            "dlc": 8,
+            "data": bytes(8),
+            "is_fd": False,
+            "bitrate_switch": False,
+            "error_state_indicator": False,
+        },
         use_bin_type=True,
     )
 
 
-def make_frame(
-    rng: random.Random, contract: FrameContract, kind: str
-) -> can.Message | bytes:
+def make_frame(rng: random.Random, contract: FrameContract, kind: str) -> can.Message | bytes:
     """One piece of noise of ``kind``: a CAN message, or raw datagram bytes."""
     if kind == "raw_datagram":
         return _raw_datagram(rng)
     if kind == "foreign_id":
         arbitration_id = rng.choice([i for i in range(0x800) if i not in OUR_IDS])
-        return can.Message(arbitration_id=arbitration_id, is_extended_id=False,
-                           data=rng.randbytes(rng.randrange(9)))
+        return can.Message(
+            arbitration_id=arbitration_id,
+            is_extended_id=False,
+            data=rng.randbytes(rng.randrange(9)),
+        )
     arbitration_id = rng.choice(OUR_IDS)
     if kind == "bad_crc":
-        return can.Message(arbitration_id=arbitration_id, is_extended_id=False,
-                           data=_bad_crc_payload(rng, arbitration_id))
+        return can.Message(
+            arbitration_id=arbitration_id,
+            is_extended_id=False,
+            data=_bad_crc_payload(rng, arbitration_id),
+        )
     if kind == "wrong_length":
-        return can.Message(arbitration_id=arbitration_id, is_extended_id=False,
-                           data=rng.randbytes(rng.randrange(8)))
+        return can.Message(
+            arbitration_id=arbitration_id,
+            is_extended_id=False,
+            data=rng.randbytes(rng.randrange(8)),
+        )
     if kind == "extended_id":
-        return can.Message(arbitration_id=arbitration_id, is_extended_id=True,
-                           data=_valid_payload(rng, contract, arbitration_id))
+        return can.Message(
+            arbitration_id=arbitration_id,
+            is_extended_id=True,
+            data=_valid_payload(rng, contract, arbitration_id),
+        )
     if kind == "remote_frame":
-        return can.Message(arbitration_id=arbitration_id, is_extended_id=False,
-                           is_remote_frame=True, dlc=8)
+        return can.Message(
+            arbitration_id=arbitration_id, is_extended_id=False, is_remote_frame=True, dlc=8
+        )
     if kind == "error_frame":
-        return can.Message(arbitration_id=arbitration_id, is_extended_id=False,
-                           is_error_frame=True, data=_bad_crc_payload(rng, arbitration_id))
+        return can.Message(
+            arbitration_id=arbitration_id,
+            is_extended_id=False,
+            is_error_frame=True,
+            data=_bad_crc_payload(rng, arbitration_id),
+        )
     raise ValueError(f"unknown kind {kind!r}")
 
 
@@ -158,15 +184,23 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--max-seconds", type=float, default=3.0)
     parser.add_argument("--start-on", choices=("command", "sensor"), default="command")
     parser.add_argument("--wait", type=float, default=30.0)
-    parser.add_argument("--raw-weight", type=int, default=dict(KINDS)["raw_datagram"],
-                        help="relative weight of raw datagrams (the others sum to 96)")
+    parser.add_argument(
+        "--raw-weight",
+        type=int,
+        default=dict(KINDS)["raw_datagram"],
+        help="relative weight of raw datagrams (the others sum to 96)",
+    )
     args = parser.parse_args(argv)
     address = ipaddress.IPv6Address(args.channel)  # ValueError for anything but IPv6
     if not address.is_multicast or address.packed[1] & 0x0F != 1:
         parser.error(f"{args.channel} is not an interface-local (ff11::) multicast group")
-    if not (0 < args.rate_hz <= 10_000 and 0 < args.max_frames <= 20_000
-            and 0 < args.max_seconds <= 3.0 and 0 < args.wait <= 60
-            and 0 <= args.raw_weight <= 1000):
+    if not (
+        0 < args.rate_hz <= 10_000
+        and 0 < args.max_frames <= 20_000
+        and 0 < args.max_seconds <= 3.0
+        and 0 < args.wait <= 60
+        and 0 <= args.raw_weight <= 1000
+    ):
         parser.error("out of bounds: rate ≤ 10 kHz, ≤ 20k frames, ≤ 3 s, wait ≤ 60 s")
 
     rng = random.Random(args.seed)
@@ -180,8 +214,7 @@ def main(argv: list[str] | None = None) -> int:
             print(json.dumps({"error": f"no {args.start_on} frame seen", "sent": 0}))
             return 1
         kinds = [kind for kind, _ in KINDS]
-        weights = [args.raw_weight if kind == "raw_datagram" else weight
-                   for kind, weight in KINDS]
+        weights = [args.raw_weight if kind == "raw_datagram" else weight for kind, weight in KINDS]
         per_burst = max(1, args.rate_hz * BURST_PERIOD_NS // 1_000_000_000)
         start_ns = due_ns = time.monotonic_ns()
         stop_ns = start_ns + int(args.max_seconds * 1e9)
@@ -207,8 +240,15 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         raw.close()
         bus.shutdown()
-    print(json.dumps({"sent": sum(v for k, v in sent.items() if k != "send_failed"),
-                      "by_kind": dict(sent), "elapsed_s": elapsed_s}))
+    print(
+        json.dumps(
+            {
+                "sent": sum(v for k, v in sent.items() if k != "send_failed"),
+                "by_kind": dict(sent),
+                "elapsed_s": elapsed_s,
+            }
+        )
+    )
     return 0
 
 

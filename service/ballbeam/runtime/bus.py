@@ -54,9 +54,10 @@ def check_stays_on_host(bus: BusSection) -> None:
 
 
 def isolated_group(group: str) -> str:
-    """The same group prefix with random low 64 bits. Not private on its own: python-can
-    binds the wildcard address, so a socket hears every joined group on its port; a private
-    bus needs its own port too (see free_udp_port)."""
+    """The same group prefix with random low 64 bits: a private bus for one run, as long as
+    its sockets hear only their own group (open_bus sees to that; python-can alone binds the
+    wildcard address and, on Linux, hears every group joined on its port). The launcher also
+    gives each run its own port (free_udp_port), for listeners that do not opt out."""
     address = ipaddress.IPv6Address(group)
     prefix = int(address) >> 64 << 64
     return str(ipaddress.IPv6Address(prefix | secrets.randbits(64)))

@@ -62,8 +62,8 @@ def launch_run(
     check_stays_on_host(config.bus)
     child_overrides = list(overrides)
     if config.bus.interface == "udp_multicast" and config.bus.isolate_runs:
-        # Group and port both: the sockets bind the wildcard address, so another run on the
-        # same port would be heard whatever its group.
+        # Group and port both: open_bus makes its sockets hear their own group only, and a
+        # port of its own keeps the run apart from listeners that do not.
         group = isolated_group(config.bus.channel)
         child_overrides += [f"bus.channel='{group}'", f"bus.port={free_udp_port()}"]
         config = load_config(config_path, child_overrides)
