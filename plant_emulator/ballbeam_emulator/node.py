@@ -81,31 +81,28 @@ class PlantEmulator:
         self.bus.send(can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=False))
 
     def _send_sample(self) -> None:
-        """Truth first, then the sensor frame, all with this sample's counter."""
+        """The sensor frame first (the controller can start its cycle at once), then the
+        truth frames, all with this sample's counter."""
         loss = self.config.plant.sensor_loss
         if loss and self.fault_rng.random() < loss:
             self.counters.dropped_by_injection += 1
-            truth_only = True
         else:
-            truth_only = False
+            reading = read_sensors(self.physics.params, self.state, self.noise_m)
+            status = (STATUS_WATCHDOG if self.watchdog_zeroed else 0) | (
+                0 if self.started else STATUS_HELD
+            )
+            self._send(
+                SENSOR_ID,
+                self.contract.encode_sensor(
+                    self.counter, reading.angle_counts, reading.position_counts, status
+                ),
+            )
+            self.counters.samples_sent += 1
         theta, theta_rate, velocity, position = (float(v) for v in self.state)
         self._send(
             TRUTH_ANGLE_ID, self.contract.encode_truth_angle(self.counter, theta, theta_rate)
         )
         self._send(TRUTH_BALL_ID, self.contract.encode_truth_ball(self.counter, position, velocity))
-        if truth_only:
-            return
-        reading = read_sensors(self.physics.params, self.state, self.noise_m)
-        status = (STATUS_WATCHDOG if self.watchdog_zeroed else 0) | (
-            0 if self.started else STATUS_HELD
-        )
-        self._send(
-            SENSOR_ID,
-            self.contract.encode_sensor(
-                self.counter, reading.angle_counts, reading.position_counts, status
-            ),
-        )
-        self.counters.samples_sent += 1
 
     def _recv(self, timeout_s: float) -> can.Message | None:
         """The next message within ``timeout_s``; datagrams that are no frame are counted."""

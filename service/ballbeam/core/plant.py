@@ -78,14 +78,23 @@ class PlantPhysics:
         step = true_model.discretize(params.substep_s)
         self._Ad = step.Ad
         self._bd = step.Bd[:, 0]
+        # n substeps at a held voltage in one product (lock-step advances a whole period).
+        self._powers: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
     def advance(self, state: np.ndarray, command_v: float, substeps: int) -> np.ndarray:
         """State after ``substeps`` substeps holding ``command_v``."""
         drive_v = drive_voltage(self.params, command_v)
         if not self.params.nonlinear_ball:
-            for _ in range(substeps):
-                state = self._Ad @ state + self._bd * drive_v
-            return state
+            if substeps <= 0:
+                return state
+            transition = self._powers.get(substeps)
+            if transition is None:
+                Ad_n, bd_n = np.eye(4), np.zeros(4)
+                for _ in range(substeps):
+                    Ad_n, bd_n = self._Ad @ Ad_n, self._Ad @ bd_n + self._bd
+                transition = self._powers.setdefault(substeps, (Ad_n, bd_n))
+            result: np.ndarray = transition[0] @ state + transition[1] * drive_v
+            return result
         for _ in range(substeps):
             state = self._rk4(state, drive_v)
             state = self._apply_stops(state)

@@ -109,6 +109,7 @@ class ControllerDaemon:
         self.last_output: CycleOutput | None = None
         self.last_command: bytes | None = None
         self.truth_angle: TruthAngle | None = None
+        self.sample_log_time_ns: dict[int, int] = {}  # sensor counter → its sample's log time
         self.wall_origin_ns = time.time_ns()
         self.mono_origin_ns = time.monotonic_ns()
         self.theta_limit_rad = config.limits.theta_rad
@@ -177,6 +178,7 @@ class ControllerDaemon:
             if verdict == "ok":
                 self.latest_sensor = frame
                 self.fresh = True
+                self.sample_log_time_ns[frame.counter] = self.log_time_ns
             elif verdict == "repeated":
                 self._on_repeated_sensor(frame)
             else:
@@ -186,9 +188,10 @@ class ControllerDaemon:
         elif isinstance(frame, TruthBall):
             angle = self.truth_angle
             if angle is not None and angle.counter == frame.counter:
+                # Truth follows its sensor frame: log it at the time of that sample.
                 self.recorder.record(
                     self.handles["/truth"],
-                    self.log_time_ns,
+                    self.sample_log_time_ns.get(frame.counter, self.log_time_ns),
                     (frame.counter, angle.theta_rad, angle.theta_rate_rad_s,
                      frame.velocity_m_s, frame.position_m),
                 )

@@ -93,7 +93,8 @@ def run_daemon(config: Config, log_path: Path, config_path: str | None) -> Path:
     design = controller_design(config)  # before touching the bus: a bad config fails fast
     # The recorder's writer thread shares the GIL; switching sooner bounds how long it can
     # hold up the control loop's wake-up (measured: p99 lateness roughly halved).
-    sys.setswitchinterval(REALTIME_SWITCH_INTERVAL_S)
+    if config.run.mode == "realtime":
+        sys.setswitchinterval(REALTIME_SWITCH_INTERVAL_S)
     scheduling = apply_scheduling(config.controller.cpu, config.controller.realtime_priority)
     contract = FrameContract.load()
     resolved = json.dumps(config.model_dump(mode="json"), sort_keys=True)
