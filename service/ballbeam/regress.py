@@ -121,7 +121,7 @@ def table(results: list[ScenarioResult]) -> str:
     rows = [("scenario", "metric", "bound", "value", "result")]
     for result in results:
         if result.error is not None:
-            rows.append((result.name, "(run)", "-", result.error.splitlines()[0][:60], "FAIL"))
+            rows.append((result.name, "(run)", "-", "error, see below", "FAIL"))
             continue
         for check in result.checks:
             value = check.value
@@ -141,6 +141,9 @@ def table(results: list[ScenarioResult]) -> str:
         for row in rows
     ]
     lines.insert(1, "  ".join("-" * width for width in widths))
+    for result in results:
+        if result.error is not None:
+            lines.append(f"\n{result.name}: {result.error}")
     passed = sum(result.passed for result in results)
     lines.append(f"\n{passed}/{len(results)} scenarios passed")
     return "\n".join(lines)
