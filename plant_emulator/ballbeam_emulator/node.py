@@ -173,6 +173,11 @@ class PlantEmulator:
                     last_sent = time.monotonic()
                 continue
             if command.sensor_counter != self.counter:
+                if not command.enable:
+                    # A stop (0 V, disabled) is obeyed whatever sample it answers; the plant
+                    # does not advance on it.
+                    self._apply(command, now_ns)
+                    continue
                 self.counters.rejected += 1  # answers an older sample: stale
                 continue
             self._apply(command, now_ns)
