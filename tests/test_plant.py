@@ -26,7 +26,7 @@ def _params(**changes: object) -> PlantParameters:
 
 
 def test_motor_step_response_matches_the_papers_formula() -> None:
-    params = _params()
+    params = _params(hard_stop_rad=100.0)  # a free shaft: 300 ms at 5 V turns 2.6 rad
     physics = PlantPhysics(params)
     alpha, ab = params.alpha, params.alpha_beta
     state = np.zeros(4)
@@ -80,8 +80,9 @@ def test_nonlinear_ball_agrees_with_linear_for_small_angles_and_departs_for_larg
     assert_allclose(b[2] / params.substep_s, expected_accel, rtol=1e-6)
 
 
-def test_nonlinear_ball_stops_at_the_beam_end_and_servo_at_hard_stop() -> None:
-    params = _params(nonlinear_ball=True)
+@pytest.mark.parametrize("nonlinear", [True, False])
+def test_ball_stops_at_the_beam_end_and_servo_at_hard_stop(nonlinear: bool) -> None:
+    params = _params(nonlinear_ball=nonlinear)
     physics = PlantPhysics(params)
     state = np.array([math.radians(-40), 0.0, 0.0, 0.15])  # rolls toward +x
     state = physics.advance(state, 0.0, 20000)

@@ -175,6 +175,13 @@ def command_run(args: argparse.Namespace) -> int:
             f"over {result.config.bus.interface}",
             summary,
         )
+    if summary.get("end_reason") != "completed":
+        print(
+            f"ballbeam: the run did not complete: {summary.get('end_reason')} "
+            f"(log: {result.log_path})",
+            file=sys.stderr,
+        )
+        return 1
     return 0
 
 
@@ -355,6 +362,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USAGE
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:
+        # The reader went away (``ballbeam plan | head``): not an error of ours.
+        sys.stderr.close()
+        return 0
 
 
 if __name__ == "__main__":

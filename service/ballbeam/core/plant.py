@@ -58,8 +58,9 @@ def drive_voltage(params: PlantParameters, command_v: float) -> float:
 
 
 class PlantPhysics:
-    """Integrates the plant in fixed substeps. Linear ball: exact ZOH per substep;
-    nonlinear ball: RK4 per substep with end stops and hard stops applied between steps."""
+    """Integrates the plant in fixed substeps. Linear ball: exact ZOH over the held voltage;
+    nonlinear ball: RK4 per substep. The servo hard stops and the beam ends are physical and
+    apply to both (the linear ball checks them once per call, the nonlinear one per substep)."""
 
     def __init__(self, params: PlantParameters) -> None:
         self.params = params
@@ -94,7 +95,7 @@ class PlantPhysics:
                     Ad_n, bd_n = self._Ad @ Ad_n, self._Ad @ bd_n + self._bd
                 transition = self._powers.setdefault(substeps, (Ad_n, bd_n))
             result: np.ndarray = transition[0] @ state + transition[1] * drive_v
-            return result
+            return self._apply_stops(result)
         for _ in range(substeps):
             state = self._rk4(state, drive_v)
             state = self._apply_stops(state)
@@ -126,6 +127,10 @@ class PlantPhysics:
 
     def _apply_stops(self, state: np.ndarray) -> np.ndarray:
         p = self.params
+        if abs(state[THETA]) <= p.hard_stop_rad and abs(state[BALL_POSITION]) <= (
+            p.beam_half_length_m
+        ):
+            return state
         state = state.copy()
         if abs(state[THETA]) > p.hard_stop_rad:
             state[THETA] = math.copysign(p.hard_stop_rad, state[THETA])

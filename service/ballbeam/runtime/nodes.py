@@ -6,6 +6,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
 import json
 import logging
@@ -103,10 +104,9 @@ def run_daemon(config: Config, log_path: Path, config_path: str | None) -> Path:
         ("config.resolved.json", "application/json", resolved.encode()),
     ]
     if config_path is not None:
-        try:
+        # The resolved config above is what the run used; the source file is a courtesy.
+        with contextlib.suppress(OSError):
             attachments.append(("config.toml", "application/toml", Path(config_path).read_bytes()))
-        except OSError:
-            pass  # the resolved config above is what the run used
     recorder = Recorder(
         log_path,
         metadata={
