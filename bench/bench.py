@@ -100,8 +100,8 @@ def bus_run(config: str, *overrides: str, memory: MemoryWatch | None = None) -> 
 
 # -- 1. real-time loop ---------------------------------------------------------------------------
 REALTIME_VARIANTS: dict[str, tuple[str, ...]] = {
-    "sleep only": ("controller.spin_us=0",),
-    "sleep + spin 200 µs": ("controller.spin_us=200",),
+    "sleep only": ("controller.spin_us=0", "controller.cpu=-1", "plant.cpu=-1"),
+    "sleep + spin 200 µs": ("controller.spin_us=200", "controller.cpu=-1", "plant.cpu=-1"),
     "spin + CPU affinity": ("controller.spin_us=200", "controller.cpu=1", "plant.cpu=0"),
     "spin + affinity + SCHED_FIFO": (
         "controller.spin_us=200",

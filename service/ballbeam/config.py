@@ -161,7 +161,9 @@ class ControllerSection(_Section):
         None, gt=0, description="braking voltage the guard counts on; default V − dead zone"
     )
     spin_us: int = Field(200, ge=0, le=10_000, description="busy-wait before each deadline")
-    cpu: int | None = Field(None, ge=0, le=1023, description="pin the daemon to this CPU")
+    cpu: int | None = Field(
+        None, ge=-1, le=1023, description="real time: pin the daemon to this CPU (-1: don't)"
+    )
     realtime_priority: int | None = Field(
         None, ge=1, le=99, description="SCHED_FIFO priority for the daemon, where permitted"
     )
@@ -198,7 +200,9 @@ class PlantSection(_Section):
     lockstep_resend_ms: float = Field(
         20.0, gt=0, le=10_000, description="lock-step: resend the sample if no command came"
     )
-    cpu: int | None = Field(None, ge=0, le=1023, description="pin the emulator to this CPU")
+    cpu: int | None = Field(
+        None, ge=-1, le=1023, description="real time: pin the emulator to this CPU (-1: don't)"
+    )
     realtime_priority: int | None = Field(
         None, ge=1, le=99, description="SCHED_FIFO priority for the emulator, where permitted"
     )

@@ -68,7 +68,7 @@ def apply_scheduling(cpu: int | None, realtime_priority: int | None) -> dict[str
     """Pin to a CPU and/or switch to SCHED_FIFO; what was refused is reported, not fatal
     (an unprivileged user still gets a working, if jittery, bench)."""
     applied: dict[str, str] = {}
-    if cpu is not None:
+    if cpu is not None and cpu >= 0:
         try:
             os.sched_setaffinity(0, {cpu})
             applied["cpu"] = str(cpu)
@@ -94,9 +94,10 @@ def run_daemon(config: Config, log_path: Path, config_path: str | None) -> Path:
     design = controller_design(config)  # before touching the bus: a bad config fails fast
     # The recorder's writer thread shares the GIL; switching sooner bounds how long it can
     # hold up the control loop's wake-up (measured: p99 lateness roughly halved).
+    scheduling: dict[str, str] = {}
     if config.run.mode == "realtime":
         sys.setswitchinterval(REALTIME_SWITCH_INTERVAL_S)
-    scheduling = apply_scheduling(config.controller.cpu, config.controller.realtime_priority)
+        scheduling = apply_scheduling(config.controller.cpu, config.controller.realtime_priority)
     contract = FrameContract.load()
     resolved = json.dumps(config.model_dump(mode="json"), sort_keys=True)
     attachments = [
@@ -148,7 +149,8 @@ def run_emulator(config: Config) -> None:
 
     contract = FrameContract.load()
     stop = StopFlag().install()
-    apply_scheduling(config.plant.cpu, config.plant.realtime_priority)
+    if config.run.mode == "realtime":  # lock-step has no deadlines to protect
+        apply_scheduling(config.plant.cpu, config.plant.realtime_priority)
     bus = open_bus(config.bus)
     emulator = PlantEmulator(config, bus, contract)
     try:
