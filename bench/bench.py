@@ -271,6 +271,63 @@ def bench_memory(duration_s: float) -> dict[str, Any]:
     return {"duration_s": duration_s, **memory.report()}
 
 
+def print_tables(figures: dict[str, Any]) -> None:
+    """The headline figures as plain tables (the JSON follows for machines)."""
+    if "plan" in figures:
+        print("plan + synthesis, 8 s horizon at 1 kHz")
+        for name, row in figures["plan"].items():
+            if "plan_ms" in row:
+                print(
+                    f"  {name:<22} duration {row['duration_s']:.4f} s   plan {row['plan_ms']:7.2f} ms"
+                    f"   plan+synthesis {row['plan_plus_synthesis_ms']:7.2f} ms"
+                )
+            else:
+                print(
+                    f"  {name:<22} ours {row['ours_duration_s']:.6f} s in {row['ours_us']:.1f} µs;"
+                    f" Ruckig {row['ruckig_duration_s']:.6f} s in {row['ruckig_us']:.1f} µs"
+                )
+    if "lockstep" in figures:
+        row = figures["lockstep"]
+        print(
+            f"lock-step: {row['simulated_s']:.0f} s simulated in {row['loop_wall_s']:.2f} s"
+            f" = {row['speed_x_realtime']:.2f}x real time"
+        )
+    if "quality" in figures:
+        quality = figures["quality"]
+        print(f"settle / true minimum time ({quality['true_minimum_time_s']:.3f} s)")
+        for name, row in quality.items():
+            if isinstance(row, dict):
+                print(
+                    f"  {name:<22} offline {row['offline_ratio']:.3f}   bus {row['bus_ratio']:.3f}"
+                )
+    if "replay" in figures:
+        row = figures["replay"]
+        print(
+            f"replay: {row['run_duration_s']:.0f} s run, {row['messages']} messages,"
+            f" read {row['read_s']:.2f} s, metrics {row['analyse_s']:.2f} s,"
+            f" verify {row['verify_s']:.2f} s"
+        )
+    if "realtime" in figures:
+        print(
+            "real time: rate  variant  lateness p50/p99/p99.9/max µs  overruns  latency p50/p99 µs"
+        )
+        for row in figures["realtime"]:
+            print(
+                f"  {row['rate_hz']:>5} Hz  {row['variant']:<30} {row['lateness_p50_us']:6.1f}"
+                f" {row['lateness_p99_us']:7.1f} {row['lateness_p999_us']:7.1f}"
+                f" {row['lateness_max_us']:8.1f}  {row['overruns']:>6}"
+                f"  {row['latency_p50_us']:6.1f} {row['latency_p99_us']:6.1f}"
+            )
+    if "memory" in figures:
+        for name, row in figures["memory"].items():
+            if isinstance(row, dict):
+                print(
+                    f"memory {name}: peak {row['peak_rss_mib']:.1f} MiB, first quarter"
+                    f" {row['rss_first_quarter_mib']:.1f}, last quarter"
+                    f" {row['rss_last_quarter_mib']:.1f}"
+                )
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="short runs")
@@ -292,6 +349,7 @@ def main() -> int:
         if name in selected:
             print(f"bench: {name} ...", file=sys.stderr)
             figures[name] = step()
+    print_tables(figures)
     text = json.dumps(figures, indent=2, default=float)
     print(text)
     if args.json:
