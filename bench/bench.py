@@ -278,7 +278,8 @@ def print_tables(figures: dict[str, Any]) -> None:
         for name, row in figures["plan"].items():
             if "plan_ms" in row:
                 print(
-                    f"  {name:<22} duration {row['duration_s']:.4f} s   plan {row['plan_ms']:7.2f} ms"
+                    f"  {name:<22} duration {row['duration_s']:.4f} s"
+                    f"   plan {row['plan_ms']:7.2f} ms"
                     f"   plan+synthesis {row['plan_plus_synthesis_ms']:7.2f} ms"
                 )
             else:
