@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import os
+import time
 from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass
@@ -68,8 +69,6 @@ def evaluate(expect: dict[str, dict[str, float]], summary: dict[str, Any]) -> tu
 
 
 def run_scenario(path: Path, overrides: Iterable[str] = ()) -> ScenarioResult:
-    import time
-
     from ballbeam.analysis import summarise
     from ballbeam.logs.reader import read_log
     from ballbeam.runtime.launcher import launch_run

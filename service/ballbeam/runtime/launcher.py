@@ -10,6 +10,7 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -56,8 +57,6 @@ def launch_run(
     on_started: Callable[[dict[str, subprocess.Popen[str]]], None] | None = None,
 ) -> LaunchResult:
     """Run one scenario; ``on_started`` gets both processes (benchmarks watch their memory)."""
-    import time
-
     config = load_config(config_path, overrides)
     check_stays_on_host(config.bus)
     child_overrides = list(overrides)
@@ -75,16 +74,22 @@ def launch_run(
     started = time.monotonic()
     emulator = subprocess.Popen(
         [*base, "emulator", *config_args],
-        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
     )
     daemon = subprocess.Popen(
         [*base, "daemon", *config_args, "--log", str(log_path)],
-        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
     )
     if on_started is not None:
         on_started({"emulator": emulator, "daemon": daemon})
-    budget_s = STARTUP_ALLOWANCE_S + config.controller.start_timeout_s + (
-        config.run.duration_s * (1.5 if config.run.mode == "realtime" else 20.0)
+    budget_s = (
+        STARTUP_ALLOWANCE_S
+        + config.controller.start_timeout_s
+        + (config.run.duration_s * (1.5 if config.run.mode == "realtime" else 20.0))
     )
     try:
         try:
