@@ -17,6 +17,16 @@ from .conftest import CONFIGS
 PAPER = (CONFIGS / "paper.toml").resolve()
 
 
+def regress(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "ballbeam", "regress", *args],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+
+
 def test_evaluate_bounds_and_a_missing_value() -> None:
     checks = evaluate(
         {"settle_time_s": {"max": 2.1}, "overshoot_mm": {"min": 0.0, "max": 1.0}},
@@ -38,22 +48,7 @@ def test_regress_reports_pass_and_fail(tmp_path: Path) -> None:
     (scenarios / "good.toml").write_text(common + "[expect]\nsettle_time_s = { max = 2.1 }\n")
     (scenarios / "bad.toml").write_text(common + "[expect]\nsettle_time_s = { max = 0.5 }\n")
     junit = tmp_path / "report.xml"
-    completed = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "ballbeam",
-            "regress",
-            str(scenarios),
-            "--json",
-            "--junit-xml",
-            str(junit),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        check=False,
-    )
+    completed = regress(str(scenarios), "--json", "--junit-xml", str(junit))
     assert completed.returncode == 1, completed.stderr
     report = json.loads(completed.stdout)
     verdicts = {scenario["name"]: scenario["passed"] for scenario in report["scenarios"]}
@@ -66,25 +61,13 @@ def test_regress_reports_pass_and_fail(tmp_path: Path) -> None:
 
 def test_a_scenario_with_an_unknown_metric_is_refused(tmp_path: Path) -> None:
     (tmp_path / "typo.toml").write_text("[expect]\nsettle_tim_s = { max = 2 }\n")
-    completed = subprocess.run(
-        [sys.executable, "-m", "ballbeam", "regress", str(tmp_path)],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=False,
-    )
+    completed = regress(str(tmp_path))
     assert completed.returncode == 1
     assert "unknown metric" in completed.stdout
     assert "Traceback" not in completed.stderr + completed.stdout
 
 
 def test_an_empty_scenario_directory_is_one_clear_error(tmp_path: Path) -> None:
-    completed = subprocess.run(
-        [sys.executable, "-m", "ballbeam", "regress", str(tmp_path)],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=False,
-    )
+    completed = regress(str(tmp_path))
     assert completed.returncode == 2
     assert "no scenario files" in completed.stderr

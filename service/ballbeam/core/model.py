@@ -77,9 +77,24 @@ class LinearModel:
         ball_gain_scale: float = 1.0,
     ) -> LinearModel:
         """The paper's model; the scales multiply α and γ (plant-model mismatch studies)."""
-        alpha = constants.alpha * motor_gain_scale
-        alpha_beta = constants.alpha * constants.beta * motor_gain_scale
-        gamma = constants.gamma * ball_gain_scale
+        C = np.array(
+            [
+                [constants.angle_sensor_gain, 0.0, 0.0, 0.0],
+                [0.0, 0.0, 0.0, constants.position_sensor_gain],
+            ]
+        )
+        return cls.from_gains(
+            alpha=constants.alpha * motor_gain_scale,
+            alpha_beta=constants.alpha * constants.beta * motor_gain_scale,
+            gamma=constants.gamma * ball_gain_scale,
+            C=C,
+        )
+
+    @classmethod
+    def from_gains(
+        cls, alpha: float, alpha_beta: float, gamma: float, C: np.ndarray
+    ) -> LinearModel:
+        """The model's structure from its three gains (the plant physics uses its own)."""
         A = np.array(
             [
                 [0.0, 1.0, 0.0, 0.0],
@@ -89,12 +104,7 @@ class LinearModel:
             ]
         )
         B = np.array([[0.0], [alpha], [0.0], [0.0]])
-        C = np.array(
-            [
-                [constants.angle_sensor_gain, 0.0, 0.0, 0.0],
-                [0.0, 0.0, 0.0, constants.position_sensor_gain],
-            ]
-        )
+        C = np.array(C, dtype=float)
         for matrix in (A, B, C):
             matrix.setflags(write=False)
         return cls(A=A, B=B, C=C)

@@ -64,17 +64,8 @@ class PlantPhysics:
 
     def __init__(self, params: PlantParameters) -> None:
         self.params = params
-        true_model = LinearModel(
-            A=np.array(
-                [
-                    [0.0, 1.0, 0.0, 0.0],
-                    [0.0, -params.alpha_beta, 0.0, 0.0],
-                    [params.gamma, 0.0, 0.0, 0.0],
-                    [0.0, 0.0, 1.0, 0.0],
-                ]
-            ),
-            B=np.array([[0.0], [params.alpha], [0.0], [0.0]]),
-            C=np.zeros((2, 4)),
+        true_model = LinearModel.from_gains(
+            params.alpha, params.alpha_beta, params.gamma, C=np.zeros((2, 4))
         )
         step = true_model.discretize(params.substep_s)
         self._Ad = step.Ad
