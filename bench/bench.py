@@ -75,8 +75,12 @@ class MemoryWatch:
             if len(series) < 4:
                 continue
             kib = np.array([value for _, value in series], dtype=float)
+            minutes = np.array([at for at, _ in series]) / 60.0
             quarter = max(1, len(kib) // 4)
+            # Growth after warm-up (the first quarter): the least-squares slope of RSS.
+            slope_kib_per_min = np.polyfit(minutes[quarter:], kib[quarter:], 1)[0]
             result[name] = {
+                "growth_mib_per_min": float(slope_kib_per_min / 1024),
                 "peak_rss_mib": float(kib.max() / 1024),
                 "rss_first_quarter_mib": float(kib[quarter : 2 * quarter].mean() / 1024),
                 "rss_last_quarter_mib": float(kib[-quarter:].mean() / 1024),
@@ -150,15 +154,51 @@ def bench_realtime(duration_s: float) -> list[dict[str, Any]]:
 
 
 # -- 2. lock-step speed --------------------------------------------------------------------------
-def bench_lockstep(duration_s: float) -> dict[str, Any]:
-    summary = bus_run(PAPER, f"run.duration_s={duration_s}")
-    simulated_s = summary["cycles"] * 1e-3
+LOCKSTEP_VARIANTS: dict[str, tuple[str, ...]] = {
+    "block in recv": ("run.lockstep_poll_us=0",),
+    "poll 300 µs, then block (default)": (),
+}
+
+
+def _exchange_split_us(log_path: Path) -> dict[str, float]:
+    """Where a lock-step cycle goes, from the kernel receive stamps of the sensor frames and
+    the send stamps of the commands: the daemon's turnaround (sensor frame in → command out)
+    and the emulator's plus the bus's (command out → next sensor frame in)."""
+    run_log = read_log(log_path, topics=["/can/rx", "/can/tx"])
+    rx = run_log.topics["/can/rx"].values
+    sensor_in_s = np.asarray(rx["bus_time_s"][rx["arbitration_id"] == 0x101])
+    command_out_s = np.asarray(run_log.topics["/can/tx"].values["bus_time_s"])
+    n = min(len(sensor_in_s), len(command_out_s)) - 1
+    daemon_us = (command_out_s[:n] - sensor_in_s[:n]) * 1e6
+    emulator_us = (sensor_in_s[1 : n + 1] - command_out_s[:n]) * 1e6
     return {
-        "simulated_s": simulated_s,
-        "loop_wall_s": summary["loop_wall_s"],
-        "speed_x_realtime": simulated_s / summary["loop_wall_s"],
-        "process_wall_s": summary["wall_time_s"],
+        "daemon_turnaround_p50_us": float(np.median(daemon_us)),
+        "emulator_and_bus_p50_us": float(np.median(emulator_us)),
+        "cycle_mean_us": float(np.mean(daemon_us + emulator_us)),
     }
+
+
+def bench_lockstep(duration_s: float) -> list[dict[str, Any]]:
+    rows = []
+    for variant, overrides in LOCKSTEP_VARIANTS.items():
+        with tempfile.TemporaryDirectory() as log_dir:
+            result = launch_run(
+                PAPER, [f"run.log_dir='{log_dir}'", f"run.duration_s={duration_s}", *overrides]
+            )
+            timing = read_log(result.log_path, topics=["/timing"]).topics["/timing"].values
+            loop_s = (int(timing["end_ns"][-1]) - int(timing["start_ns"][0])) * 1e-9
+            simulated_s = len(timing) * 1e-3
+            rows.append(
+                {
+                    "variant": variant,
+                    "simulated_s": simulated_s,
+                    "loop_wall_s": loop_s,
+                    "speed_x_realtime": simulated_s / loop_s,
+                    "process_wall_s": result.wall_time_s,
+                    **_exchange_split_us(result.log_path),
+                }
+            )
+    return rows
 
 
 # -- 3. plan + synthesis -------------------------------------------------------------------------
@@ -288,11 +328,13 @@ def print_tables(figures: dict[str, Any]) -> None:
                     f" Ruckig {row['ruckig_duration_s']:.6f} s in {row['ruckig_us']:.1f} µs"
                 )
     if "lockstep" in figures:
-        row = figures["lockstep"]
-        print(
-            f"lock-step: {row['simulated_s']:.0f} s simulated in {row['loop_wall_s']:.2f} s"
-            f" = {row['speed_x_realtime']:.2f}x real time"
-        )
+        print("lock-step: variant, speed, cycle mean µs; p50 µs of daemon turnaround, emulator+bus")
+        for row in figures["lockstep"]:
+            print(
+                f"  {row['variant']:<34} {row['speed_x_realtime']:5.2f}x"
+                f" {row['cycle_mean_us']:7.1f} {row['daemon_turnaround_p50_us']:7.1f}"
+                f" {row['emulator_and_bus_p50_us']:7.1f}"
+            )
     if "quality" in figures:
         quality = figures["quality"]
         print(f"settle / true minimum time ({quality['true_minimum_time_s']:.3f} s)")
@@ -325,7 +367,8 @@ def print_tables(figures: dict[str, Any]) -> None:
                 print(
                     f"memory {name}: peak {row['peak_rss_mib']:.1f} MiB, first quarter"
                     f" {row['rss_first_quarter_mib']:.1f}, last quarter"
-                    f" {row['rss_last_quarter_mib']:.1f}"
+                    f" {row['rss_last_quarter_mib']:.1f}, growth"
+                    f" {row['growth_mib_per_min']:+.3f} MiB/min"
                 )
 
 
@@ -344,7 +387,7 @@ def main() -> int:
         ("quality", bench_quality),
         ("replay", lambda: bench_replay(60.0 if quick else 600.0)),
         ("realtime", lambda: bench_realtime(10.0 if quick else 60.0)),
-        ("memory", lambda: bench_memory(60.0 if quick else 600.0)),
+        ("memory", lambda: bench_memory(120.0 if quick else 600.0)),
     ]
     for name, step in steps:
         if name in selected:

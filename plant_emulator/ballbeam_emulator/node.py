@@ -104,9 +104,9 @@ class PlantEmulator:
         )
         self._send(TRUTH_BALL_ID, self.contract.encode_truth_ball(self.counter, position, velocity))
 
-    def _recv(self, timeout_s: float) -> can.Message | None:
+    def _recv(self, timeout_s: float, poll_s: float = 0.0) -> can.Message | None:
         """The next message within ``timeout_s``; datagrams that are no frame are counted."""
-        return recv_frame(self.bus, timeout_s, self._count_malformed)
+        return recv_frame(self.bus, timeout_s, self._count_malformed, poll_s)
 
     def _count_malformed(self, _detail: str) -> None:
         self.counters.rejected += 1
@@ -161,10 +161,11 @@ class PlantEmulator:
     # -- modes --------------------------------------------------------------------------------
     def run_lockstep(self, stop: StopFlag) -> None:
         resend_s = self.config.plant.lockstep_resend_ms * 1e-3
+        poll_s = self.config.run.lockstep_poll_us * 1e-6
         self._send_sample()
         last_sent = time.monotonic()
         while not stop.is_set():
-            message = self._recv(resend_s)
+            message = self._recv(resend_s, poll_s)
             now_ns = time.monotonic_ns()
             self._check_watchdog(now_ns)
             if message is None or (command := self._accept_command(message)) is None:

@@ -231,6 +231,12 @@ class RunSection(_Section):
     duration_s: float = Field(4.0, gt=0, le=86400)
     mode: Literal["lockstep", "realtime"] = "lockstep"
     log_dir: str = Field("logs", min_length=1, description="where run MCAP files go")
+    lockstep_poll_us: int = Field(
+        300,
+        ge=0,
+        le=100_000,
+        description="lock-step: poll the bus this long (yielding the CPU) before blocking",
+    )
 
 
 class BusSection(_Section):

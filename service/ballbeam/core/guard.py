@@ -39,28 +39,34 @@ def stopping_distance_rad(guard: AngleGuard, rate_rad_s: float) -> float:
     return rate_rad_s / a - (c / (a * a)) * math.log1p(a * rate_rad_s / c)
 
 
-def _margin(guard: AngleGuard, estimate: np.ndarray, input_v: float, sign: float) -> float:
-    """Distance left to the limit (side ``sign``) after one period at ``input_v``; < 0 unsafe."""
-    theta = float(guard.Ad[0] @ estimate + guard.Bd[0, 0] * input_v)
-    rate = float(guard.Ad[1] @ estimate + guard.Bd[1, 0] * input_v)
-    return guard.theta_limit_rad - sign * theta - stopping_distance_rad(guard, sign * rate)
-
-
 def guarded_voltage(guard: AngleGuard, estimate: np.ndarray, requested_v: float) -> float:
     """``requested_v`` clamped to ±V and to the guard's safe interval for this state."""
+    # The successor is (free response) + Bd·u: the matrix part once per cycle, the rest in
+    # scalars (the same floating-point operations as the whole expression, so bit for bit).
+    theta_free = float(guard.Ad[0] @ estimate)
+    rate_free = float(guard.Ad[1] @ estimate)
+    theta_per_v = float(guard.Bd[0, 0])
+    rate_per_v = float(guard.Bd[1, 0])
+
+    def margin(input_v: float, sign: float) -> float:
+        """Distance left to the limit (side ``sign``) after one period at ``input_v``."""
+        theta = theta_free + theta_per_v * input_v
+        rate = rate_free + rate_per_v * input_v
+        return guard.theta_limit_rad - sign * theta - stopping_distance_rad(guard, sign * rate)
+
     limit = guard.voltage_limit_v
     voltage = min(max(requested_v, -limit), limit)
     for sign in (1.0, -1.0):
         # Pushing toward the limit on side `sign` means voltage·sign large.
-        if _margin(guard, estimate, voltage, sign) >= 0.0:
+        if margin(voltage, sign) >= 0.0:
             continue
         safest = -sign * limit
-        if _margin(guard, estimate, safest, sign) < 0.0:
+        if margin(safest, sign) < 0.0:
             return safest  # cannot stay inside: brake as hard as possible
         inside, outside = safest, voltage
         for _ in range(BISECTION_STEPS):
             middle = 0.5 * (inside + outside)
-            if _margin(guard, estimate, middle, sign) >= 0.0:
+            if margin(middle, sign) >= 0.0:
                 inside = middle
             else:
                 outside = middle

@@ -1,11 +1,13 @@
-"""The run recorder: one MCAP file per run, fed from the control loop without ever blocking it.
+"""The run recorder: one MCAP file per run, fed from the control loop without waiting on I/O.
 
-The loop thread only appends ``(handle, log_time_ns, values)`` to a bounded in-memory queue
-(:meth:`Recorder.record`, a fraction of a microsecond). A writer thread encodes the values
-(CDR through each channel's precompiled :class:`~ballbeam.logs.schema.StructSchema`, or JSON),
-feeds them to :class:`mcap.writer.Writer` (zstd chunks, message indexes) and calls its
-``flush()`` every ``flush_interval_s``: that closes the open chunk and hands it to the OS, so a
-killed process loses at most about one flush interval of data.
+The loop thread encodes each message (CDR through its channel's precompiled
+:class:`~ballbeam.logs.schema.StructSchema`, or JSON) and appends it to the open chunk of a
+:class:`~ballbeam.logs.mcap_file.McapFile` (:meth:`Recorder.record`, about 1.5 µs). Every
+``flush_interval_s`` a writer thread takes the open chunk, compresses it (zstd), writes it with
+its message indexes and hands it to the OS, so a killed process loses at most about one flush
+interval of data. Encoding in the loop thread costs it a microsecond more than queueing values
+did, but leaves the writer thread almost nothing to do in Python, so the two no longer contend
+for the interpreter lock at every message.
 
 Header, metadata and attachments are written and flushed in the constructor, so a run that
 crashes still says what it was. ``close()`` adds final metadata and the summary section.
@@ -28,18 +30,15 @@ from types import TracebackType
 from typing import IO, Any
 
 import numpy as np
-from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
+from mcap.writer import LIBRARY_IDENTIFIER
 
 from ballbeam.errors import RecorderError
+from ballbeam.logs.mcap_file import McapFile, OpenChunk
 from ballbeam.logs.schema import MESSAGE_ENCODING, SCHEMA_ENCODING, StructSchema
 
 PROFILE = "ballbeam"
 JSON_SCHEMA_ENCODING = "jsonschema"
 JSON_MESSAGE_ENCODING = "json"
-
-# Writer-thread batch: small enough that it hands the GIL back to the loop thread often.
-_BATCH = 16
-_YIELD_S = 50e-6
 
 try:
     _VERSION = version("ballbeam-hil")
@@ -77,7 +76,7 @@ def _finite(obj: Any) -> Any:
     return obj
 
 
-def encode_json(values: Mapping[str, Any]) -> bytes:
+def encode_json(values: object) -> bytes:
     """Encode one JSON-channel message: a strict-JSON object (non-finite floats become null)."""
     if not isinstance(values, Mapping):
         raise TypeError(f"a JSON message must be a mapping, got {type(values).__name__}")
@@ -158,14 +157,13 @@ class Recorder:
         else:
             stream = path
         self._stream = stream
-        self._writer = Writer(stream, chunk_size=chunk_size_bytes, compression=CompressionType.ZSTD)
         try:
-            self._writer.start(profile=profile, library=LIBRARY)
+            self._file = McapFile(stream, profile=profile, library=LIBRARY)
             for name, record in metadata_records.items():
-                self._writer.add_metadata(name, record)
+                self._file.add_metadata(name, record)
             now_ns = time.time_ns()
             for name, media_type, data in attachment_list:
-                self._writer.add_attachment(now_ns, now_ns, name, media_type, data)
+                self._file.add_attachment(now_ns, name, media_type, data)
             # On disk now, so that a run which dies early still says what it was.
             stream.flush()
         except OSError as exc:
@@ -174,13 +172,19 @@ class Recorder:
             raise _recorder_error(f"cannot write log {self.path}: {_os_reason(exc)}", exc) from exc
 
         self._flush_interval_s = float(flush_interval_s)
+        self._chunk_size_bytes = int(chunk_size_bytes)
         self._capacity = int(queue_size)
-        self._queue: deque[tuple[ChannelHandle, int, Any]] = deque()
+        # Two locks: the open chunk (taken by record() for a microsecond) and the stream
+        # (held by the writer thread while it compresses and writes a chunk), so that the loop
+        # never waits for I/O.
+        self._chunk_lock = threading.Lock()
+        self._stream_lock = threading.Lock()
+        self._close_lock = threading.Lock()
+        self._taken: deque[OpenChunk] = deque()  # taken from the file, not yet written
+        self._buffered = 0  # messages in memory: the open chunk and the taken ones
         self._accepting = True
         self._dropped = 0
-        self._drop_lock = threading.Lock()
-        self._writer_lock = threading.Lock()  # the mcap Writer is not thread-safe
-        self._close_lock = threading.Lock()
+        self._wake = threading.Event()
         self._stop = threading.Event()
         self._closed = False
         self._error: BaseException | None = None
@@ -218,7 +222,7 @@ class Recorder:
     def _register(
         self, topic: str, schema_name: str, schema_encoding: str, data: bytes, encoding: str
     ) -> int:
-        with self._writer_lock:
+        with self._chunk_lock, self._stream_lock:
             if self._closed or not self._accepting:
                 raise RecorderError(f"recorder for {self.path} is closed or failed")
             if topic in self._topics:
@@ -227,9 +231,9 @@ class Recorder:
                 key = (schema_name, schema_encoding, data)
                 schema_id = self._schema_ids.get(key)
                 if schema_id is None:
-                    schema_id = self._writer.register_schema(schema_name, schema_encoding, data)
+                    schema_id = self._file.add_schema(schema_name, schema_encoding, data)
                     self._schema_ids[key] = schema_id
-                channel_id: int = self._writer.register_channel(topic, encoding, schema_id)
+                channel_id = self._file.add_channel(topic, encoding, schema_id)
             except OSError as exc:
                 raise _recorder_error(
                     f"cannot write log {self.path}: {_os_reason(exc)}", exc
@@ -242,77 +246,84 @@ class Recorder:
     def record(
         self, handle: ChannelHandle, log_time_ns: int, values: Sequence[Any] | Mapping[str, Any]
     ) -> None:
-        """Queue one message. Never blocks and never raises.
+        """Encode one message into the open chunk (about 1.5 µs). Never blocks on I/O and
+        never raises.
 
         ``values`` is a tuple in field order (fastest) or a mapping by field name; for a JSON
-        channel, a JSON-able mapping. The recorder takes ownership: do not mutate it afterwards.
-        When the queue is full, or after a write error or close, the message is dropped and
-        counted in :attr:`dropped`. Values that do not fit the schema are counted in
-        :attr:`rejected` by the writer thread.
+        channel, a JSON-able mapping. Values that do not fit the schema are counted in
+        :attr:`rejected`. When ``queue_size`` messages are already waiting in memory, or
+        after a write error or close, the message is dropped and counted in :attr:`dropped`.
         """
-        if self._accepting and len(self._queue) < self._capacity:
-            self._queue.append((handle, log_time_ns, values))
-        else:
-            with self._drop_lock:
+        try:
+            if handle.owner is not self:
+                raise ValueError(f"handle for {handle.topic!r} is not from this recorder")
+            log_time_ns = operator.index(log_time_ns)
+            if not 0 <= log_time_ns < 1 << 63:
+                # int64 on the way back out (numpy), though MCAP stores uint64.
+                raise ValueError(f"log_time_ns {log_time_ns} is outside 0..2**63")
+            data = handle.schema.pack(values) if handle.schema is not None else encode_json(values)
+        except (ValueError, TypeError, OverflowError, RecursionError) as exc:
+            with self._chunk_lock:
+                self._rejected += 1
+                if self._first_rejection is None:
+                    self._first_rejection = f"{handle.topic}: {exc}"
+            return
+        with self._chunk_lock:
+            if not self._accepting or self._buffered >= self._capacity:
                 self._dropped += 1
+                return
+            self._file.add_message(handle.channel_id, log_time_ns, data)
+            self._buffered += 1
+            if self._file.open_bytes >= self._chunk_size_bytes:
+                self._take_chunk()
+                self._wake.set()
+
+    def _take_chunk(self) -> None:
+        """Move the open chunk to the writer's queue (chunk lock held)."""
+        chunk = self._file.take_chunk()
+        if chunk is not None:
+            self._taken.append(chunk)
 
     # ---- writer thread ----------------------------------------------------------------------
 
     def _run(self) -> None:
-        queue = self._queue
-        poll_s = min(0.005, self._flush_interval_s / 4)
         next_flush_s = time.monotonic() + self._flush_interval_s
         try:
             while True:
                 stopping = self._stop.is_set()
-                while queue:
-                    self._write_batch(queue)
-                    if queue:
-                        time.sleep(_YIELD_S)  # give the loop thread the GIL between batches
                 now_s = time.monotonic()
                 if stopping or now_s >= next_flush_s:
-                    with self._writer_lock:
-                        self._writer.flush()  # type: ignore[no-untyped-call]
+                    with self._chunk_lock:
+                        self._take_chunk()
                     next_flush_s = now_s + self._flush_interval_s
+                while self._taken:
+                    chunk = self._taken[0]
+                    with self._stream_lock:
+                        self._file.write_chunk(chunk)
+                    with self._chunk_lock:
+                        self._taken.popleft()
+                        self._buffered -= chunk.messages
+                        self._written += chunk.messages
+                with self._stream_lock:
+                    self._stream.flush()  # hand the chunk to the OS: a killed run keeps it
                 if stopping:
                     return
-                self._stop.wait(poll_s)
+                self._wake.wait(max(0.0, next_flush_s - time.monotonic()))
+                self._wake.clear()
         except BaseException as exc:  # kept, and re-raised by close()
-            self._error = exc
-            self._accepting = False
-            with self._drop_lock:
-                self._dropped += len(queue)
-            queue.clear()
-
-    def _write_batch(self, queue: deque[tuple[ChannelHandle, int, Any]]) -> None:
-        writer = self._writer
-        with self._writer_lock:
-            for _ in range(min(len(queue), _BATCH)):
-                handle, log_time_ns, values = queue.popleft()
-                try:
-                    if handle.owner is not self:
-                        raise ValueError(f"handle for {handle.topic!r} is not from this recorder")
-                    log_time_ns = operator.index(log_time_ns)
-                    if not 0 <= log_time_ns < 1 << 63:
-                        # int64 on the way back out (numpy), though MCAP stores uint64.
-                        raise ValueError(f"log_time_ns {log_time_ns} is outside 0..2**63")
-                    if handle.schema is not None:
-                        data = handle.schema.pack(values)
-                    else:
-                        data = encode_json(values)
-                except (ValueError, TypeError, OverflowError, RecursionError) as exc:
-                    self._rejected += 1
-                    if self._first_rejection is None:
-                        self._first_rejection = f"{handle.topic}: {exc}"
-                    continue
-                writer.add_message(handle.channel_id, log_time_ns, data, log_time_ns)
-                self._written += 1
+            with self._chunk_lock:
+                self._error = exc
+                self._accepting = False
+                self._dropped += self._buffered
+                self._buffered = 0
+                self._taken.clear()
+                self._file.take_chunk()
 
     # ---- state ------------------------------------------------------------------------------
 
     @property
     def dropped(self) -> int:
-        """Messages not recorded: queue full, recorder failed or closed."""
+        """Messages not recorded: too many waiting, recorder failed or closed."""
         return self._dropped
 
     @property
@@ -326,13 +337,13 @@ class Recorder:
 
     @property
     def messages_written(self) -> int:
-        """Messages handed to the MCAP writer so far (on disk after the next flush)."""
+        """Messages handed to the OS so far."""
         return self._written
 
     @property
     def queued(self) -> int:
-        """Messages waiting for the writer thread."""
-        return len(self._queue)
+        """Messages in memory, not yet handed to the OS."""
+        return self._buffered
 
     @property
     def error(self) -> BaseException | None:
@@ -342,7 +353,7 @@ class Recorder:
     # ---- closing ----------------------------------------------------------------------------
 
     def close(self, summary: Mapping[str, str] | None = None) -> None:
-        """Drain the queue, write final metadata and the summary section, close the file.
+        """Write what is buffered, final metadata and the summary section; close the file.
 
         ``summary`` becomes a metadata record named "summary"; a record named "recorder" holds
         the message, drop and rejection counts. Idempotent. Raises RecorderError if any write
@@ -352,17 +363,15 @@ class Recorder:
             if self._closed:
                 return
             self._closed = True
-            self._accepting = False
+            with self._chunk_lock:
+                self._accepting = False
             self._stop.set()
+            self._wake.set()
             self._thread.join()
-            # A record() racing with close() may have appended after the last drain.
-            with self._drop_lock:
-                self._dropped += len(self._queue)
-            self._queue.clear()
             if self._error is None:
                 try:
                     if summary is not None:
-                        self._writer.add_metadata("summary", _check_str_map("summary", summary))
+                        self._file.add_metadata("summary", _check_str_map("summary", summary))
                     counts = {
                         "messages_written": str(self._written),
                         "dropped": str(self._dropped),
@@ -370,11 +379,13 @@ class Recorder:
                     }
                     if self._first_rejection is not None:
                         counts["first_rejection"] = self._first_rejection
-                    self._writer.add_metadata("recorder", counts)
-                    self._writer.finish()  # type: ignore[no-untyped-call]
+                    self._file.add_metadata("recorder", counts)
+                    self._file.finish()
                     self._stream.flush()
                 except OSError as exc:
                     self._error = exc
+            if self._error is not None:
+                self._file.discard()
             if self._owns_stream:
                 try:
                     self._stream.close()

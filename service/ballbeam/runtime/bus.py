@@ -8,6 +8,7 @@ IPv4 groups go out on the network and are refused unless ``bus.allow_off_host`` 
 from __future__ import annotations
 
 import ipaddress
+import os
 import secrets
 import socket
 import sys
@@ -140,7 +141,10 @@ MAX_MALFORMED_PER_CALL = 64
 
 
 def recv_frame(
-    bus: can.BusABC, timeout_s: float, on_malformed: Callable[[str], None]
+    bus: can.BusABC,
+    timeout_s: float,
+    on_malformed: Callable[[str], None],
+    poll_s: float = 0.0,
 ) -> can.Message | None:
     """``bus.recv``, except that noise which is not a CAN frame at all does not kill the node.
 
@@ -150,12 +154,20 @@ def recv_frame(
     Returns a message, or None when the time is up (with ``timeout_s`` 0: once
     MAX_MALFORMED_PER_CALL datagrams were skipped, so that a stream of them cannot hold the
     caller). Failures of the socket itself (an OSError underneath) still raise.
+
+    ``poll_s`` > 0: first poll without blocking for up to that long, yielding the CPU between
+    polls. A reply expected within tens of microseconds (lock-step) then costs no wake-up
+    from sleep, which here is as long as the whole exchange; yielding keeps the poll from
+    starving a process that shares the core.
     """
     deadline = time.monotonic() + timeout_s
+    poll_until = time.monotonic() + min(poll_s, timeout_s)
     skipped = 0
     while True:
+        polling = time.monotonic() < poll_until
+        wait_s = 0.0 if polling else max(0.0, deadline - time.monotonic())
         try:
-            return bus.recv(timeout=max(0.0, deadline - time.monotonic()))
+            message = bus.recv(timeout=wait_s)
         except can.CanOperationError as error:
             if isinstance(error.__cause__, OSError):
                 raise
@@ -164,6 +176,10 @@ def recv_frame(
             skipped += 1
             if skipped >= MAX_MALFORMED_PER_CALL and time.monotonic() >= deadline:
                 return None
+            continue
+        if message is not None or not polling:
+            return message
+        os.sched_yield()
 
 
 def socketcan_available() -> bool:

@@ -151,9 +151,11 @@ class ControllerDaemon:
             self._event("/faults", f"rejected_{reason}", detail)
 
     # -- frames -------------------------------------------------------------------------------
-    def _recv(self, timeout_s: float) -> can.Message | None:
+    def _recv(self, timeout_s: float, poll_s: float = 0.0) -> can.Message | None:
         """The next message within ``timeout_s``; datagrams that are no frame are rejected."""
-        return recv_frame(self.bus, timeout_s, lambda detail: self._reject("malformed", detail))
+        return recv_frame(
+            self.bus, timeout_s, lambda detail: self._reject("malformed", detail), poll_s
+        )
 
     def _handle(self, message: can.Message) -> None:
         # The contract is on standard-id data frames: an extended id that happens to have
@@ -266,10 +268,10 @@ class ControllerDaemon:
         self._command(cycle, output.voltage_v, output.requested_v, enable=True)
         estimate = output.estimate
         self.recorder.record(self.handles["/estimate"], self.log_time_ns,
-                             (cycle, *(float(v) for v in estimate)))
+                             (cycle, *estimate.tolist()))
         reference, reference_input_v = self.design.reference(cycle)
         self.recorder.record(self.handles["/reference"], self.log_time_ns,
-                             (cycle, *(float(v) for v in reference), reference_input_v))
+                             (cycle, *reference.tolist(), reference_input_v))
         self._watch_theta(float(estimate[0]))
 
     def _record_sensor(self, cycle: int, reading: SensorReading | None) -> None:
@@ -366,6 +368,7 @@ class ControllerDaemon:
 
     def _run_lockstep(self) -> None:
         silence_s = self.config.controller.lockstep_timeout_s
+        poll_s = self.config.run.lockstep_poll_us * 1e-6
         self.wall_origin_ns = self.log_time_ns
         while not self.stop.is_set() and self.state.cycle < self.n_cycles:
             if self.fresh:
@@ -374,7 +377,7 @@ class ControllerDaemon:
                 self._cycle()
                 self._record_timing(start_ns, start_ns, 0)
                 continue
-            message = self._recv(silence_s)
+            message = self._recv(silence_s, poll_s)
             # Whatever arrives now belongs to the sample of the coming cycle.
             self.log_time_ns = self.wall_origin_ns + self.state.cycle * self.period_ns
             if message is None:

@@ -462,8 +462,8 @@ def _shooting_lp(
 class _Found:
     """Result of a step-count search on one grid."""
 
-    n: int  # smallest step count that reached rest
-    solution: _Solve  # that solution
+    n: int  # smallest step count that reached rest (predicted when ``solution`` is None)
+    solution: _Solve | None  # that solution; None when n was predicted, not tried
     below: _Solve  # the closest approach with n − 1 steps: the shape without slack
     root: float  # where the miss, extrapolated, reaches zero [steps]
     slope: float  # miss decrease per step there
@@ -472,14 +472,18 @@ class _Found:
 _Attempt = Callable[[int], _Solve]
 
 
-def _min_steps(attempt: _Attempt, n_start: int, slope: float | None, n_max: int) -> _Found | None:
+def _min_steps(
+    attempt: _Attempt, n_start: int, slope: float | None, n_max: int, *, confirm: bool = True
+) -> _Found | None:
     """Smallest n ≤ n_max with ``attempt(n).feasible``: safeguarded secant steps on the miss.
 
     The miss falls smoothly and convexly to zero at the minimum (paper's start, 16 ms grid:
     1.48 at 90 steps, 0.17 at 108, 0.0097 at 111, zero from 112 on), so the secant through the
     two largest infeasible counts lands on or just below it. A secant step that does not
     halve the miss doubles the next; once bracketed, such a step is followed by bisection.
-    Ends when n is feasible and n − 1 has been tried and is not.
+    Ends when n is feasible and n − 1 has been tried and is not. Without ``confirm`` (a
+    coarser grid, which only guides the next) it ends as soon as an infeasible n puts the
+    root within a step: the next grid needs that shape and the root, not a feasible count.
     """
     tried: dict[int, _Solve] = {}
     lo, hi = 0, n_max + 1  # largest infeasible count tried (0: none); smallest feasible
@@ -507,6 +511,9 @@ def _min_steps(attempt: _Attempt, n_start: int, slope: float | None, n_max: int)
             secant = (tried[k1].miss - tried[k2].miss) / (k2 - k1)
             if 0.0 < secant < math.inf:
                 slope = secant
+        if not confirm and lo in tried and lo < n_max and slope and tried[lo].miss <= slope:
+            below = tried[lo]
+            return _Found(lo + 1, None, below, lo + below.miss / slope, slope)
         if lo == 0:  # nothing infeasible yet: walk down from the feasible count
             n = max(1, hi - gallop)
             gallop *= 2
@@ -583,13 +590,18 @@ def _windowed(level: _Grid, ref: _Reference, window_s: float) -> _Attempt:
     )
 
 
+def _multiples(h: float, t_lo: float) -> list[int]:
+    multiples = [1]
+    while multiples[-1] * _LEVEL_RATIO * h * _COARSE_STEPS <= t_lo:
+        multiples.append(multiples[-1] * _LEVEL_RATIO)
+    return multiples
+
+
 def _search(grid: _Grid, t_lo: float, n_max: int) -> _Found | None:
     """The minimal step count: the whole problem on the coarsest grid, then each finer grid
     around the coarser shape (see the module notes)."""
     h = grid.step_s
-    multiples = [1]
-    while multiples[-1] * _LEVEL_RATIO * h * _COARSE_STEPS <= t_lo:
-        multiples.append(multiples[-1] * _LEVEL_RATIO)
+    multiples = _multiples(h, t_lo)
     # the coarser grids only guess the shape: they keep the fine grid's sample bound
     delta = grid.theta_max_rad - grid.theta_sample_rad
     found: _Found | None = None
@@ -604,7 +616,9 @@ def _search(grid: _Grid, t_lo: float, n_max: int) -> _Found | None:
         if found is None or prev is None:
             # a coarse grid may need a step more than the fine horizon allows
             top_max = -(-n_max // m) + (m > 1)
-            found = _min_steps(_whole(level), math.floor(t_lo / level.step_s), None, top_max)
+            found = _min_steps(
+                _whole(level), math.floor(t_lo / level.step_s), None, top_max, confirm=m == 1
+            )
             if found is None:
                 return None  # nothing within the horizon even on the coarse grid
         else:
@@ -615,7 +629,9 @@ def _search(grid: _Grid, t_lo: float, n_max: int) -> _Found | None:
             refined = None
             for width in (_WINDOW, 4.0 * _WINDOW):
                 attempt = _windowed(level, ref, width * prev.step_s)
-                refined = _min_steps(attempt, start, found.slope, -(-n_max // m) + (m > 1))
+                refined = _min_steps(
+                    attempt, start, found.slope, -(-n_max // m) + (m > 1), confirm=m == 1
+                )
                 if refined is not None:
                     break
             if refined is None:  # unusual start: no shortcut
@@ -735,7 +751,7 @@ def plan_time_optimal(
         abs(x0[0]) / max(abs(x0[1]), U / p.beta),
     )
     found = _search(grid, t_lo, n_max)
-    if found is None:
+    if found is None or found.solution is None:  # (the finest grid always confirms its count)
         raise PlanningError(
             f"no path to rest within {max_duration_s} s from {np.round(x0, 4).tolist()} "
             f"(θ, θ̇, ẋ, x) under ±{U:.2f} V and ±{limit_deg:.2f}°; allow a longer duration "
@@ -751,7 +767,7 @@ def plan_time_optimal(
         )
         if whole.feasible:  # the windows missed a faster path: search the whole problem below n
             better = _min_steps(_whole(grid), math.floor(t_lo / step_s), None, n - 1)
-            if better is not None:
+            if better is not None and better.solution is not None:
                 n, sol = better.n, better.solution
         verified = True
     return _plan(grid, sol.input_v, verified=verified)
