@@ -1,0 +1,85 @@
+"""recv_frame: the nodes' one way of reading the bus (poll, then block; noise skipped)."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from typing import Any
+
+import can
+import pytest
+
+from ballbeam.runtime.bus import recv_frame
+
+
+class ScriptedBus:
+    """Answers ``recv`` from a script: a message, None (nothing yet) or an exception."""
+
+    def __init__(self, script: list[Any]) -> None:
+        self.script = deque(script)
+        self.timeouts: list[float | None] = []
+
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        self.timeouts.append(timeout)
+        if not self.script:
+            return None
+        item = self.script.popleft()
+        if isinstance(item, BaseException):
+            raise item
+        return item  # type: ignore[no-any-return]
+
+
+def _malformed() -> can.CanOperationError:
+    error = can.CanOperationError("could not unpack received message")
+    error.__cause__ = ValueError("not msgpack")
+    return error
+
+
+def _frame(arbitration_id: int = 0x101) -> can.Message:
+    return can.Message(arbitration_id=arbitration_id, data=bytes(8), is_extended_id=False)
+
+
+def test_polling_catches_a_frame_that_arrives_during_the_poll() -> None:
+    with can.Bus(interface="virtual", channel="poll") as ours, can.Bus(
+        interface="virtual", channel="poll"
+    ) as theirs:
+        sender = threading.Timer(0.002, lambda: theirs.send(_frame()))
+        sender.start()
+        started = time.monotonic()
+        message = recv_frame(ours, 1.0, lambda _: None, poll_s=0.5)
+        sender.join()
+    assert message is not None and message.arbitration_id == 0x101
+    assert time.monotonic() - started < 0.5
+
+
+def test_polls_without_blocking_then_blocks_for_the_rest() -> None:
+    bus = ScriptedBus([None, None])
+    assert recv_frame(bus, 0.05, lambda _: None, poll_s=0.01) is None  # type: ignore[arg-type]
+    assert bus.timeouts[0] == 0.0
+    assert bus.timeouts[-1] is not None and 0.0 < bus.timeouts[-1] <= 0.05
+
+
+def test_malformed_datagrams_while_polling_are_reported_and_skipped() -> None:
+    reports: list[str] = []
+    bus = ScriptedBus([_malformed(), None, _malformed(), _frame(0x102)])
+    message = recv_frame(bus, 1.0, reports.append, poll_s=0.5)  # type: ignore[arg-type]
+    assert message is not None and message.arbitration_id == 0x102
+    assert len(reports) == 2 and "not msgpack" in reports[0]
+
+
+def test_a_failing_socket_still_raises() -> None:
+    error = can.CanOperationError("recv failed")
+    error.__cause__ = OSError(9, "Bad file descriptor")
+    for poll_s in (0.0, 0.1):
+        bus = ScriptedBus([error])
+        with pytest.raises(can.CanOperationError):
+            recv_frame(bus, 1.0, lambda _: None, poll_s=poll_s)  # type: ignore[arg-type]
+        error.__traceback__ = None
+
+
+def test_a_stream_of_noise_cannot_hold_a_non_blocking_read() -> None:
+    bus = ScriptedBus([_malformed() for _ in range(10_000)])
+    reports: list[str] = []
+    assert recv_frame(bus, 0.0, reports.append) is None  # type: ignore[arg-type]
+    assert len(reports) == 64
