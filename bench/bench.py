@@ -155,8 +155,8 @@ def bench_realtime(duration_s: float) -> list[dict[str, Any]]:
 
 # -- 2. lock-step speed --------------------------------------------------------------------------
 LOCKSTEP_VARIANTS: dict[str, tuple[str, ...]] = {
-    "block in recv": ("run.lockstep_poll_us=0",),
-    "poll 300 µs, then block (default)": (),
+    "block in recv (default)": (),
+    "poll 300 µs, then block": ("run.lockstep_poll_us=300",),
 }
 
 

@@ -436,3 +436,16 @@ def test_other_model_structures_are_refused() -> None:
     A[0, 0] = -1.0
     with pytest.raises(ConfigError, match="structure"):
         plan_time_optimal(LinearModel(A=A, B=MODEL.B, C=MODEL.C), PAPER_START)
+
+
+def test_direct_highs_path_gives_what_linprog_gives(
+    plan_margin: TimeOptimalPlan, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The planner's shortcut to SciPy's HiGHS bindings must not change a plan: without it
+    (every LP through the public linprog) the paper plan comes out the same, bit for bit."""
+    import ballbeam.core.planning.time_optimal as time_optimal
+
+    monkeypatch.setattr(time_optimal, "_highs", None)
+    through_linprog = paper_plan(0.5)
+    assert through_linprog.n_steps == plan_margin.n_steps
+    assert np.array_equal(through_linprog.input_v, plan_margin.input_v)

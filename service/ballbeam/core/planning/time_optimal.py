@@ -31,7 +31,14 @@ Method:
   for the time's lower bound); each grid ``_LEVEL_RATIO`` times finer keeps the inputs of the
   coarser shape and frees only windows around its switches, so the fine LPs have a few
   hundred variables. A tie-break on the inputs' L1 norm makes holds u = 0 rather than the
-  chatter an arbitrary LP vertex would show.
+  chatter an arbitrary LP vertex would show. Only the finest grid needs N feasible and N − 1
+  not; a coarser one only guides the next with a shape and a root, so its search ends at the
+  first infeasible count whose miss puts the root within a step (usually the first LP, the
+  start being the coarser root), and the coarsest one starts where the same search on a grid
+  twice as coarse (half the variables) ends. The paper's start takes 7 LPs (32 ms: 3 small;
+  16, 4 ms: 1 each; 1 ms: 2), solved directly by HiGHS where SciPy ships its bindings
+  (``_solve_lp``). Its plan comes from the same LPs as when every grid confirmed its count,
+  so it is the same to the bit (the golden log's replay pins it).
 * Minimality of the windowed search is checked against the whole fine problem in the tests
   (paper's start and random starts, independent formulation) and on request at run time
   (``verify_minimal``: the whole fine LP at N − 1, about 0.25 s for the paper's start).
@@ -42,7 +49,7 @@ from __future__ import annotations
 import math
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -53,6 +60,11 @@ from scipy.optimize import OptimizeWarning, linprog
 from ballbeam.core.model import LinearModel
 from ballbeam.core.plans import PlanSamples
 from ballbeam.errors import ConfigError, PlanningError
+
+try:  # HiGHS's own Python bindings as SciPy ships them (private; SciPy ≥ 1.15), see _solve_lp
+    from scipy.optimize._highspy import _core as _highs
+except ImportError:  # older SciPy: linprog only
+    _highs = None
 
 __all__ = ["TimeOptimalPlan", "intersample_margin_rad", "plan_time_optimal"]
 
@@ -239,19 +251,23 @@ class _Grid:
     theta_max_rad: float
     theta_sample_rad: float  # bound on the samples k ≥ 1: θmax − δ
     first_input_v: tuple[float, float]  # interval for u_0
-    impulse: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # (n, 4): Ad^i Bd
+    # the impulse response (n, 4), Ad^i Bd, as far as computed: a cache, grown by ``impulse``
+    _impulse: list[np.ndarray] = field(default_factory=list, compare=False, repr=False)
 
     @property
     def theta_lp_rad(self) -> float:
         return self.theta_sample_rad - _SOLVER_MARGIN_RAD
 
-    def responses(self, n: int) -> _Grid:
-        """This grid with the impulse response known for at least n steps."""
-        if n <= self.impulse.shape[0]:
-            return self
-        n_new = max(n, 2 * self.impulse.shape[0])
-        Bd = _propagate(self.p, np.zeros((1, 4)), np.ones(1), np.array([self.step_s]))[0]
-        return replace(self, impulse=_simulate(self.p, self.step_s, Bd, np.zeros(n_new - 1)))
+    def impulse(self, n: int) -> np.ndarray:
+        """The impulse response Ad^i Bd for at least i < n, shape (≥ n, 4); computed once for
+        all the attempts on this grid (doubling as they ask for more)."""
+        known = self._impulse[0] if self._impulse else np.zeros((0, 4))
+        if n > known.shape[0]:
+            n_new = max(n, 2 * known.shape[0])
+            Bd = _propagate(self.p, np.zeros((1, 4)), np.ones(1), np.array([self.step_s]))[0]
+            known = _simulate(self.p, self.step_s, Bd, np.zeros(n_new - 1))
+            self._impulse[:] = [known]
+        return known
 
     def bounds_v(self, n: int) -> tuple[np.ndarray, np.ndarray]:
         lo = np.full(n, -self.voltage_v)
@@ -273,6 +289,75 @@ def _linprog(**kwargs: Any) -> Any:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", OptimizeWarning)
         return linprog(**kwargs)
+
+
+def _highs_direct(
+    c: np.ndarray, A_eq: scipy.sparse.csc_array, b_eq: np.ndarray, bounds: np.ndarray
+) -> tuple[bool | None, np.ndarray]:
+    """HiGHS through its own bindings, with linprog's model and options: (True, x) when optimal,
+    (False, _) when infeasible, (None, _) when it gives up."""
+    n_col, n_row = c.size, b_eq.size
+    lp = _highs.HighsLp()
+    lp.num_col_, lp.num_row_ = n_col, n_row
+    # (the bindings copy lists twice as fast as arrays, element by element either way)
+    lp.col_cost_ = c.tolist()
+    lp.col_lower_ = np.maximum(bounds[:, 0], -_highs.kHighsInf).tolist()
+    lp.col_upper_ = np.minimum(bounds[:, 1], _highs.kHighsInf).tolist()
+    lp.row_lower_ = lp.row_upper_ = b_eq.tolist()
+    matrix = lp.a_matrix_
+    matrix.format_ = _highs.MatrixFormat.kColwise
+    matrix.num_col_, matrix.num_row_ = n_col, n_row
+    matrix.start_ = A_eq.indptr.tolist()
+    matrix.index_ = A_eq.indices.tolist()
+    matrix.value_ = A_eq.data.tolist()
+    options = _highs.HighsOptions()
+    options.output_flag = options.log_to_console = False
+    options.presolve = "on"  # as linprog sets it (HiGHS's own default is "choose")
+    for key, value in _HIGHS_OPTIONS.items():
+        setattr(options, key, value)
+    solver = _highs._Highs()
+    solver.passOptions(options)
+    solver.passModel(lp)
+    solver.run()
+    status = solver.getModelStatus()
+    if status == _highs.HighsModelStatus.kOptimal:
+        return True, np.array(solver.getSolution().col_value)
+    return (False if status == _highs.HighsModelStatus.kInfeasible else None), np.zeros(0)
+
+
+def _solve_lp(
+    c: np.ndarray,
+    A_eq: scipy.sparse.csc_array,
+    b_eq: np.ndarray,
+    bounds: np.ndarray,
+    method: str,
+) -> np.ndarray | None:
+    """argmin c·x subject to A_eq x = b_eq within the bounds (n, 2), or None if the LP is
+    infeasible or HiGHS gives up on every try.
+
+    The first dual-simplex try goes to HiGHS directly where SciPy ships its bindings: linprog's
+    checks and conversions take about 1.4 ms a call, more than most of these LPs take to solve,
+    and the answer is the same to the bit (same model, same options).
+    """
+    # HiGHS now and then gives up ("model status unknown") on these near-degenerate LPs, most
+    # often right at the minimal count; without presolve, or by interior point, it answers.
+    tries: list[dict[str, Any]] = [{}, {"presolve": False}, {"solver": "ipm"}]
+    if _highs is not None and method == "highs":
+        try:
+            optimal, x = _highs_direct(c, A_eq, b_eq, bounds)
+        except (AttributeError, TypeError):  # a SciPy whose private bindings differ: linprog
+            pass
+        else:
+            if optimal is not None:
+                return x if optimal else None
+            tries = tries[1:]
+    for extra in tries:
+        options = {**_HIGHS_OPTIONS, **extra}
+        chosen = "highs-ipm" if options.pop("solver", None) else method
+        res = _linprog(c=c, A_eq=A_eq, b_eq=b_eq, bounds=bounds, method=chosen, options=options)
+        if res.status in (0, 2):
+            break
+    return np.asarray(res.x) if res.status == 0 else None
 
 
 @dataclass(frozen=True)
@@ -305,24 +390,26 @@ def _solve_steps(
     the inputs before it.
     """
     p, h = grid.p, grid.step_s
-    grid = grid.responses(n + 1)
     lo, hi = grid.bounds_v(n)
     fixed_v = np.clip(fixed_v, lo, hi)
     mask = free_mask.copy()
     extra = np.zeros(0, dtype=np.int64)
-    fail = _Solve(False, fixed_v, _simulate(p, h, grid.x0, fixed_v))
+
+    def fail() -> _Solve:
+        return _Solve(False, fixed_v, _simulate(p, h, grid.x0, fixed_v))
+
     for _ in range(12):
         fixed = np.where(mask, 0.0, fixed_v)
         base = _simulate(p, h, grid.x0, fixed)
         cols = np.flatnonzero(mask)
         if cols.size == 0:
-            return fail
+            return fail()
         # θ is monotone over a held zero input (holds) and turns at most once over any held
         # input: bounding the last sample of each fixed stretch covers holds; turns come lazily
         samples = np.union1d(cols[1:][np.diff(cols) > 1], extra)
         free_v = _shooting_lp(grid, n, cols, base, samples, exact_end=exact_end, method=method)
         if free_v is None:
-            return fail
+            return fail()
         u = fixed.copy()
         u[cols] = free_v
         states = _simulate(p, h, grid.x0, u)
@@ -337,15 +424,15 @@ def _solve_steps(
         near = (over[:, None] + np.arange(-1, 2)[None, :]).ravel()
         added = np.union1d(extra, near[(near >= 1) & (near < n)])
         if np.union1d(samples, added).size == samples.size:  # bounded already: tolerance
-            return fail
+            return fail()
         extra = added
-    return fail
+    return fail()
 
 
 def _terminal_rows(grid: _Grid, n: int, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The end state's response to the free inputs v = u/U (4, m), rows scaled to a largest
     entry of 1, and those scales (4,): the units of the miss."""
-    T = grid.impulse[n - 1 - cols].T * grid.voltage_v
+    T = grid.impulse(n)[n - 1 - cols].T * grid.voltage_v
     scale = np.max(np.abs(T), axis=1)
     scale[scale == 0.0] = 1.0
     return T / scale[:, None], scale
@@ -444,17 +531,10 @@ def _shooting_lp(
     cost = np.zeros(n_var)
     cost[:nv] = _TIE_WEIGHT if tie else 0.0
     cost[iE] = 1.0
-    # HiGHS now and then gives up ("model status unknown") on these near-degenerate LPs, most
-    # often right at the minimal count; without presolve, or by interior point, it answers.
-    for extra in ({}, {"presolve": False}, {"solver": "ipm"}):
-        options = {**_HIGHS_OPTIONS, **extra}
-        chosen = "highs-ipm" if options.pop("solver", None) else method
-        res = _linprog(c=cost, A_eq=A_eq, b_eq=b_eq, bounds=bounds, method=chosen, options=options)
-        if res.status in (0, 2):
-            break
-    if res.status != 0:
+    x = _solve_lp(cost, A_eq, b_eq, bounds, method)
+    if x is None:
         return None
-    v = res.x[:m] - res.x[m:nv] if tie else res.x[:m]
+    v = x[:m] - x[m:nv] if tie else x[:m]
     return np.asarray(np.clip(v * U, lo[cols], hi[cols]), dtype=float)
 
 
@@ -511,16 +591,23 @@ def _min_steps(
             secant = (tried[k1].miss - tried[k2].miss) / (k2 - k1)
             if 0.0 < secant < math.inf:
                 slope = secant
-        if not confirm and lo in tried and lo < n_max and slope and tried[lo].miss <= slope:
+        # (a slope of ∞ comes from a miss the LP could not give: it predicts nothing)
+        if not confirm and lo in tried and lo < n_max and slope and slope < math.inf:
             below = tried[lo]
-            return _Found(lo + 1, None, below, lo + below.miss / slope, slope)
+            if below.miss <= slope:
+                return _Found(lo + 1, None, below, lo + below.miss / slope, slope)
         if lo == 0:  # nothing infeasible yet: walk down from the feasible count
             n = max(1, hi - gallop)
             gallop *= 2
             last_step = 0
             continue
         miss = tried[lo].miss
-        step = math.ceil(miss / slope - 1e-9) if slope and miss < math.inf else max(2, lo // 5)
+        if slope and miss < math.inf:
+            # to confirm, step onto the predicted root; else to just short of it, where an
+            # infeasible count ends the search
+            step = math.ceil(miss / slope - 1e-9) if confirm else math.floor(miss / slope)
+        else:
+            step = max(2, lo // 5)
         step = max(step, 1, 2 * last_step if secant_failed else 0)
         if hi <= n_max and (secant_failed or lo + step >= hi or not slope):
             n, last_step = (lo + hi) // 2, 0
@@ -590,18 +677,36 @@ def _windowed(level: _Grid, ref: _Reference, window_s: float) -> _Attempt:
     )
 
 
-def _multiples(h: float, t_lo: float) -> list[int]:
-    multiples = [1]
-    while multiples[-1] * _LEVEL_RATIO * h * _COARSE_STEPS <= t_lo:
-        multiples.append(multiples[-1] * _LEVEL_RATIO)
-    return multiples
+def _first_guess(
+    grid: _Grid, m: int, t_lo: float, n_max: int, delta: float
+) -> tuple[int, float | None]:
+    """Where to start the whole problem on the coarsest grid (step m·h), and the miss's slope.
+
+    From the lower bound on the time the secant steps take a few LPs to reach the root; they
+    are taken on a grid twice as coarse instead, whose LPs have half the variables, and its
+    root (a little late: the coarser grid is slower) starts the coarsest grid's search.
+    """
+    start = math.floor(t_lo / (m * grid.step_s))
+    pre = _make_grid(
+        grid.p, grid.x0, grid.voltage_v, grid.theta_max_rad, 2 * m * grid.step_s, delta
+    )
+    if pre is None:
+        return start, None
+    found = _min_steps(
+        _whole(pre), math.floor(t_lo / pre.step_s), None, -(-n_max // (2 * m)) + 1, confirm=False
+    )
+    if found is None or not math.isfinite(found.slope) or not math.isfinite(found.below.miss):
+        return start, None
+    return max(start, math.floor(2.0 * found.root)), found.slope
 
 
 def _search(grid: _Grid, t_lo: float, n_max: int) -> _Found | None:
     """The minimal step count: the whole problem on the coarsest grid, then each finer grid
     around the coarser shape (see the module notes)."""
     h = grid.step_s
-    multiples = _multiples(h, t_lo)
+    multiples = [1]
+    while multiples[-1] * _LEVEL_RATIO * h * _COARSE_STEPS <= t_lo:
+        multiples.append(multiples[-1] * _LEVEL_RATIO)
     # the coarser grids only guess the shape: they keep the fine grid's sample bound
     delta = grid.theta_max_rad - grid.theta_sample_rad
     found: _Found | None = None
@@ -616,13 +721,14 @@ def _search(grid: _Grid, t_lo: float, n_max: int) -> _Found | None:
         if found is None or prev is None:
             # a coarse grid may need a step more than the fine horizon allows
             top_max = -(-n_max // m) + (m > 1)
-            found = _min_steps(
-                _whole(level), math.floor(t_lo / level.step_s), None, top_max, confirm=m == 1
-            )
+            start, slope = _first_guess(grid, m, t_lo, n_max, delta)
+            found = _min_steps(_whole(level), start, slope, top_max, confirm=m == 1)
             if found is None:
                 return None  # nothing within the horizon even on the coarse grid
         else:
             ratio = prev.step_s / level.step_s
+            if not math.isfinite(found.below.miss):  # no closest approach to refine: no shortcut
+                return _min_steps(_whole(grid), math.floor(t_lo / h), None, n_max)
             ref = _reference(prev, found.below)
             start = math.floor(found.root * ratio)
             # the terminal rows are scaled by one step's effect (∝ step): the slope carries over
