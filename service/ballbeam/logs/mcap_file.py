@@ -80,10 +80,13 @@ class McapFile:
     """One MCAP file being written to ``stream`` (which must be open for binary writing).
 
     The magic and the header are written at once; :meth:`finish` writes the summary and the
-    footer. Offsets are counted here, so the stream need not be seekable.
+    footer. Offsets are counted here, so the stream need not be seekable. ``spill_dir`` holds
+    the unnamed file of chunk indexes (default: the system's temporary directory).
     """
 
-    def __init__(self, stream: IO[bytes], *, profile: str, library: str) -> None:
+    def __init__(
+        self, stream: IO[bytes], *, profile: str, library: str, spill_dir: str | None = None
+    ) -> None:
         self._stream = stream
         self._position = 0
         self._compressor = zstandard.ZstdCompressor()
@@ -98,7 +101,8 @@ class McapFile:
         self._attachment_indexes: list[AttachmentIndex] = []
         self._metadata_indexes: list[MetadataIndex] = []
         # Chunk indexes go to disk as they are made: memory stays flat however long the run.
-        self._chunk_index_spill = tempfile.TemporaryFile()  # noqa: SIM115 - closed in finish
+        # An unnamed file (next to the log, when there is one): nothing is left behind by a crash.
+        self._chunk_index_spill = tempfile.TemporaryFile(dir=spill_dir)  # noqa: SIM115
         self._chunk = OpenChunk()
         self._write(MCAP0_MAGIC)
         self._write(_record_bytes(Header(profile=profile, library=library)))

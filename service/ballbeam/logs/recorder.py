@@ -158,7 +158,8 @@ class Recorder:
             stream = path
         self._stream = stream
         try:
-            self._file = McapFile(stream, profile=profile, library=LIBRARY)
+            spill_dir = os.path.dirname(os.path.abspath(self.path)) if self._owns_stream else None
+            self._file = McapFile(stream, profile=profile, library=LIBRARY, spill_dir=spill_dir)
             for name, record in metadata_records.items():
                 self._file.add_metadata(name, record)
             now_ns = time.time_ns()
