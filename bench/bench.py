@@ -28,7 +28,8 @@ import numpy as np
 from ballbeam.analysis import summarise
 from ballbeam.assembly import controller_design, make_plan, run_offline
 from ballbeam.config import load_config
-from ballbeam.logs.reader import read_log
+from ballbeam.logs.reader import RunLog, read_log
+from ballbeam.runtime.frames import SENSOR_ID
 from ballbeam.runtime.launcher import launch_run
 
 REPO = Path(__file__).resolve().parents[1]
@@ -91,15 +92,33 @@ class MemoryWatch:
 def bus_run(config: str, *overrides: str, memory: MemoryWatch | None = None) -> dict[str, Any]:
     with tempfile.TemporaryDirectory() as log_dir:
         result = launch_run(config, [f"run.log_dir='{log_dir}'", *overrides], on_started=memory)
-        summary = summarise(read_log(result.log_path), result.config.limits.theta_rad)
-        run_log = read_log(result.log_path, topics=["/timing"])
-        timing = run_log.topics["/timing"].values
-        loop_s = (int(timing["end_ns"][-1]) - int(timing["start_ns"][0])) * 1e-9
-        summary["loop_wall_s"] = loop_s
-        summary["wall_time_s"] = result.wall_time_s
-        lateness = np.asarray(timing["lateness_ns"], dtype=float) * 1e-3
-        summary["lateness_p999_us"] = float(np.percentile(lateness, 99.9))
+        run_log = read_log(result.log_path)
+    summary = summarise(run_log, result.config.limits.theta_rad)
+    timing = run_log.topics["/timing"].values
+    summary["loop_wall_s"] = (int(timing["end_ns"][-1]) - int(timing["start_ns"][0])) * 1e-9
+    summary["wall_time_s"] = result.wall_time_s
+    lateness = np.asarray(timing["lateness_ns"], dtype=float) * 1e-3
+    summary["lateness_p999_us"] = float(np.percentile(lateness, 99.9))
+    summary.update(_exchange_split_us(run_log))
     return summary
+
+
+def _exchange_split_us(run_log: RunLog) -> dict[str, float]:
+    """Where a cycle goes, from the kernel receive stamps of the sensor frames and the send
+    stamps of the commands: the daemon's turnaround (sensor frame in → command out) and the
+    emulator's plus the bus's (command out → next sensor frame in). Lock-step's split; in
+    real time the second part also holds the wait for the next period."""
+    rx = run_log.topics["/can/rx"].values
+    sensor_in_s = np.asarray(rx["bus_time_s"][rx["arbitration_id"] == SENSOR_ID])
+    command_out_s = np.asarray(run_log.topics["/can/tx"].values["bus_time_s"])
+    n = min(len(sensor_in_s), len(command_out_s)) - 1
+    daemon_us = (command_out_s[:n] - sensor_in_s[:n]) * 1e6
+    emulator_us = (sensor_in_s[1 : n + 1] - command_out_s[:n]) * 1e6
+    return {
+        "daemon_turnaround_p50_us": float(np.median(daemon_us)),
+        "emulator_and_bus_p50_us": float(np.median(emulator_us)),
+        "cycle_mean_us": float(np.mean(daemon_us + emulator_us)),
+    }
 
 
 # -- 1. real-time loop ---------------------------------------------------------------------------
@@ -160,44 +179,25 @@ LOCKSTEP_VARIANTS: dict[str, tuple[str, ...]] = {
 }
 
 
-def _exchange_split_us(log_path: Path) -> dict[str, float]:
-    """Where a lock-step cycle goes, from the kernel receive stamps of the sensor frames and
-    the send stamps of the commands: the daemon's turnaround (sensor frame in → command out)
-    and the emulator's plus the bus's (command out → next sensor frame in)."""
-    run_log = read_log(log_path, topics=["/can/rx", "/can/tx"])
-    rx = run_log.topics["/can/rx"].values
-    sensor_in_s = np.asarray(rx["bus_time_s"][rx["arbitration_id"] == 0x101])
-    command_out_s = np.asarray(run_log.topics["/can/tx"].values["bus_time_s"])
-    n = min(len(sensor_in_s), len(command_out_s)) - 1
-    daemon_us = (command_out_s[:n] - sensor_in_s[:n]) * 1e6
-    emulator_us = (sensor_in_s[1 : n + 1] - command_out_s[:n]) * 1e6
-    return {
-        "daemon_turnaround_p50_us": float(np.median(daemon_us)),
-        "emulator_and_bus_p50_us": float(np.median(emulator_us)),
-        "cycle_mean_us": float(np.mean(daemon_us + emulator_us)),
-    }
-
-
 def bench_lockstep(duration_s: float) -> list[dict[str, Any]]:
     rows = []
     for variant, overrides in LOCKSTEP_VARIANTS.items():
-        with tempfile.TemporaryDirectory() as log_dir:
-            result = launch_run(
-                PAPER, [f"run.log_dir='{log_dir}'", f"run.duration_s={duration_s}", *overrides]
-            )
-            timing = read_log(result.log_path, topics=["/timing"]).topics["/timing"].values
-            loop_s = (int(timing["end_ns"][-1]) - int(timing["start_ns"][0])) * 1e-9
-            simulated_s = len(timing) * 1e-3
-            rows.append(
-                {
-                    "variant": variant,
-                    "simulated_s": simulated_s,
-                    "loop_wall_s": loop_s,
-                    "speed_x_realtime": simulated_s / loop_s,
-                    "process_wall_s": result.wall_time_s,
-                    **_exchange_split_us(result.log_path),
-                }
-            )
+        summary = bus_run(PAPER, f"run.duration_s={duration_s}", *overrides)
+        simulated_s = summary["cycles"] * 1e-3
+        rows.append(
+            {
+                "variant": variant,
+                "simulated_s": simulated_s,
+                "loop_wall_s": summary["loop_wall_s"],
+                "speed_x_realtime": simulated_s / summary["loop_wall_s"],
+                "process_wall_s": summary["wall_time_s"],
+                **{
+                    key: summary[key]
+                    for key in ("daemon_turnaround_p50_us", "emulator_and_bus_p50_us",
+                                "cycle_mean_us")
+                },
+            }
+        )
     return rows
 
 

@@ -22,6 +22,7 @@ import sys
 import tempfile
 import zlib
 from array import array
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import IO
 
@@ -272,31 +273,28 @@ class McapFile:
         summary_crc = 0
         offsets: list[SummaryOffset] = []
 
-        def group(opcode: Opcode, records: list[bytes]) -> None:
+        def group(opcode: Opcode | None, blocks: Iterable[bytes]) -> None:
+            """Write summary bytes (into the CRC) and, unless ``opcode`` is None, offer them
+            to readers as one group through a summary offset."""
             nonlocal summary_crc
             start = self._position
-            for record in records:
-                summary_crc = zlib.crc32(record, summary_crc)
-                self._write(record)
-            if self._position > start:
+            for block in blocks:
+                summary_crc = zlib.crc32(block, summary_crc)
+                self._write(block)
+            if opcode is not None and self._position > start:
                 offsets.append(SummaryOffset(opcode, start, self._position - start))
 
-        group(Opcode.SCHEMA, [_record_bytes(schema) for schema in self._schemas])
-        group(Opcode.CHANNEL, [_record_bytes(channel) for channel in self._channels])
+        group(Opcode.SCHEMA, map(_record_bytes, self._schemas))
+        group(Opcode.CHANNEL, map(_record_bytes, self._channels))
         group(Opcode.STATISTICS, [_record_bytes(self._statistics())])
         spill = self._chunk_index_spill
         spill.seek(0)
-        start = self._position
-        while block := spill.read(1 << 20):
-            summary_crc = zlib.crc32(block, summary_crc)
-            self._write(block)
-        if self._position > start:
-            offsets.append(SummaryOffset(Opcode.CHUNK_INDEX, start, self._position - start))
+        group(Opcode.CHUNK_INDEX, iter(lambda: spill.read(1 << 20), b""))
         spill.close()
-        group(Opcode.ATTACHMENT_INDEX, [_record_bytes(i) for i in self._attachment_indexes])
-        group(Opcode.METADATA_INDEX, [_record_bytes(i) for i in self._metadata_indexes])
+        group(Opcode.ATTACHMENT_INDEX, map(_record_bytes, self._attachment_indexes))
+        group(Opcode.METADATA_INDEX, map(_record_bytes, self._metadata_indexes))
         summary_offset_start = self._position
-        group(Opcode.SUMMARY_OFFSET, [_record_bytes(offset) for offset in offsets])
+        group(None, map(_record_bytes, offsets))
         footer_fields = struct.pack(
             "<BQQQ", Opcode.FOOTER, 8 + 8 + 4, summary_start, summary_offset_start
         )

@@ -160,12 +160,14 @@ def recv_frame(
     from sleep, which here is as long as the whole exchange; yielding keeps the poll from
     starving a process that shares the core.
     """
-    deadline = time.monotonic() + timeout_s
-    poll_until = time.monotonic() + min(poll_s, timeout_s)
+    now = time.monotonic()
+    deadline = now + timeout_s
+    poll_until = now + min(poll_s, timeout_s)
     skipped = 0
     while True:
-        polling = time.monotonic() < poll_until
-        wait_s = 0.0 if polling else max(0.0, deadline - time.monotonic())
+        now = time.monotonic()
+        polling = now < poll_until
+        wait_s = 0.0 if polling else max(0.0, deadline - now)
         try:
             message = bus.recv(timeout=wait_s)
         except can.CanOperationError as error:
