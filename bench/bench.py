@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from floors import exchange_floor, machine_stalls
 
 from ballbeam.analysis import summarise
 from ballbeam.assembly import controller_design, make_plan, run_offline
@@ -136,6 +137,14 @@ REALTIME_VARIANTS: dict[str, tuple[str, ...]] = {
 }
 
 
+def bench_machine_stalls(duration_s: float) -> dict[str, Any]:
+    """The machine's own stalls, probed the way the daemon runs: pinned, normal and FIFO."""
+    return {
+        "normal": machine_stalls(duration_s),
+        "SCHED_FIFO": machine_stalls(duration_s, fifo_priority=50),
+    }
+
+
 def bench_realtime(duration_s: float) -> list[dict[str, Any]]:
     rows = []
     for rate_hz in (1000, 2000):
@@ -199,6 +208,24 @@ def bench_lockstep(duration_s: float) -> list[dict[str, Any]]:
             }
         )
     return rows
+
+
+# Lock-step's frames: sensor and two truth frames out of the plant, one command back.
+FLOOR_PATTERNS = {
+    "bare ping-pong (1 frame + 1), blocking": (1, False),
+    "our pattern (3 frames + 1), blocking": (3, False),
+    "bare ping-pong (1 frame + 1), polling": (1, True),
+    "our pattern (3 frames + 1), polling": (3, True),
+}
+
+
+def bench_exchange_floor(cycles: int) -> list[dict[str, Any]]:
+    """The same bus with nothing but the frames: how fast lock-step could ever go."""
+    bus = load_config(PAPER, []).bus
+    return [
+        {"pattern": pattern, **exchange_floor(bus, cycles, plant_frames, poll)}
+        for pattern, (plant_frames, poll) in FLOOR_PATTERNS.items()
+    ]
 
 
 # -- 3. plan + synthesis -------------------------------------------------------------------------
@@ -335,6 +362,17 @@ def print_tables(figures: dict[str, Any]) -> None:
                 f" {row['cycle_mean_us']:7.1f} {row['daemon_turnaround_p50_us']:7.1f}"
                 f" {row['emulator_and_bus_p50_us']:7.1f}"
             )
+    if "exchange_floor" in figures:
+        print(
+            "lock-step floor: bare frame exchange over the same bus; µs a cycle, ceiling,"
+            " CPU µs a cycle of controller and plant side"
+        )
+        for row in figures["exchange_floor"]:
+            print(
+                f"  {row['pattern']:<42} {row['cycle_us']:6.1f}"
+                f"  {row['ceiling_x_realtime_at_1khz']:5.1f}x"
+                f"  {row['controller_cpu_us_per_cycle']:6.1f} {row['plant_cpu_us_per_cycle']:6.1f}"
+            )
     if "quality" in figures:
         quality = figures["quality"]
         print(f"settle / true minimum time ({quality['true_minimum_time_s']:.3f} s)")
@@ -361,6 +399,19 @@ def print_tables(figures: dict[str, Any]) -> None:
                 f" {row['lateness_max_us']:8.1f}  {row['overruns']:>6}"
                 f"  {row['latency_p50_us']:6.1f} {row['latency_p99_us']:6.1f}"
             )
+    if "machine_stalls" in figures:
+        print(
+            "machine stalls: a pinned bare clock loop; stalls a minute >= 0.25 / 1 / 2 ms, longest"
+        )
+        for scheduling, probe in figures["machine_stalls"].items():
+            for cpu, row in probe.items():
+                if isinstance(row, dict):
+                    print(
+                        f"  {scheduling:<10} {cpu}  {row['stalls_over_250us_per_min']:6.1f}"
+                        f" {row['stalls_over_1000us_per_min']:6.1f}"
+                        f" {row['stalls_over_2000us_per_min']:6.1f}"
+                        f"  {row['longest_stall_us']:7.0f} µs  ({row['scheduling']})"
+                    )
     if "memory" in figures:
         for name, row in figures["memory"].items():
             if isinstance(row, dict):
@@ -375,7 +426,10 @@ def print_tables(figures: dict[str, Any]) -> None:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="short runs")
-    parser.add_argument("--only", default="realtime,lockstep,plan,replay,quality,memory")
+    parser.add_argument(
+        "--only",
+        default="realtime,machine_stalls,lockstep,exchange_floor,plan,replay,quality,memory",
+    )
     parser.add_argument("--json", metavar="PATH", help="also write the figures as JSON")
     args = parser.parse_args()
     quick = args.quick
@@ -384,9 +438,11 @@ def main() -> int:
     steps: list[tuple[str, Callable[[], Any]]] = [
         ("plan", lambda: bench_plan(5 if quick else 20)),
         ("lockstep", lambda: bench_lockstep(10.0 if quick else 60.0)),
+        ("exchange_floor", lambda: bench_exchange_floor(5000 if quick else 30000)),
         ("quality", bench_quality),
         ("replay", lambda: bench_replay(60.0 if quick else 600.0)),
         ("realtime", lambda: bench_realtime(10.0 if quick else 60.0)),
+        ("machine_stalls", lambda: bench_machine_stalls(10.0 if quick else 60.0)),
         ("memory", lambda: bench_memory(120.0 if quick else 600.0)),
     ]
     for name, step in steps:
