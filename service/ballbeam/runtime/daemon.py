@@ -109,7 +109,8 @@ class ControllerDaemon:
         self.last_output: CycleOutput | None = None
         self.last_command: bytes | None = None
         self.truth_angle: TruthAngle | None = None
-        self.sample_log_time_ns: dict[int, int] = {}  # sensor counter → its sample's log time
+        self.last_sample_log: tuple[int, int] | None = None  # (counter, log time) of the
+        # latest accepted sensor frame: its truth frames are logged at that time
         self.wall_origin_ns = time.time_ns()
         self.mono_origin_ns = time.monotonic_ns()
         self.theta_limit_rad = config.limits.theta_rad
@@ -180,7 +181,7 @@ class ControllerDaemon:
             if verdict == "ok":
                 self.latest_sensor = frame
                 self.fresh = True
-                self.sample_log_time_ns[frame.counter] = self.log_time_ns
+                self.last_sample_log = (frame.counter, self.log_time_ns)
             elif verdict == "repeated":
                 self._on_repeated_sensor(frame)
             else:
@@ -190,10 +191,13 @@ class ControllerDaemon:
         elif isinstance(frame, TruthBall):
             angle = self.truth_angle
             if angle is not None and angle.counter == frame.counter:
-                # Truth follows its sensor frame: log it at the time of that sample.
+                # Truth follows its sensor frame: log it at the time of that sample (now, if
+                # that sample's sensor frame never came: counters wrap, so no older match).
+                sample = self.last_sample_log
+                at_ns = sample[1] if sample and sample[0] == frame.counter else self.log_time_ns
                 self.recorder.record(
                     self.handles["/truth"],
-                    self.sample_log_time_ns.get(frame.counter, self.log_time_ns),
+                    at_ns,
                     (frame.counter, angle.theta_rad, angle.theta_rate_rad_s,
                      frame.velocity_m_s, frame.position_m),
                 )
