@@ -2,14 +2,33 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIGS = REPO / "configs"
+PAPER = CONFIGS / "paper.toml"
+
+
+def ballbeam_argv(*args: str) -> list[str]:
+    return [sys.executable, "-m", "ballbeam", *args]
+
+
+def ballbeam(*args: str, timeout_s: float = 300) -> subprocess.CompletedProcess[str]:
+    """The ``ballbeam`` command line, run from the repository as a user would."""
+    return subprocess.run(
+        ballbeam_argv(*args),
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,
+        check=False,
+        cwd=REPO,
+    )
 
 
 @pytest.fixture
 def paper_config_path() -> Path:
-    return CONFIGS / "paper.toml"
+    return PAPER

@@ -5,8 +5,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -19,21 +17,10 @@ from ballbeam.replay import verify
 from ballbeam.runtime import channels
 from ballbeam.runtime.bus import socketcan_available
 
-from .conftest import CONFIGS
+from .conftest import PAPER, ballbeam
 
 pytestmark = pytest.mark.bus
-PAPER = CONFIGS / "paper.toml"
 SETTLE_TOLERANCE_S = 0.3
-
-
-def ballbeam(*args: str, timeout_s: float = 300) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "ballbeam", *args],
-        capture_output=True,
-        text=True,
-        timeout=timeout_s,
-        check=False,
-    )
 
 
 def run_json(config: Path, tmp_path: Path, *overrides: str) -> dict[str, object]:

@@ -9,14 +9,16 @@ from __future__ import annotations
 import importlib
 import os
 import sys
+import time
 from pathlib import Path
 from types import ModuleType
 
 import pytest
 
 from ballbeam.config import load_config
+from ballbeam.runtime.bus import INTERFACE_LOCAL_SCOPE, multicast_scope
 
-from .conftest import CONFIGS
+from .conftest import PAPER
 
 BENCH = Path(__file__).resolve().parents[1] / "bench"
 
@@ -34,22 +36,24 @@ def floors() -> ModuleType:
 def test_exchange_floor_answers_every_cycle(
     floors: ModuleType, plant_frames: int, poll: bool
 ) -> None:
-    bus = load_config(CONFIGS / "paper.toml").bus
-    row = floors.exchange_floor(bus, cycles=300, plant_frames=plant_frames, poll=poll)
-    assert row["cycles"] == 300
-    assert row["plant_frames"] == plant_frames
-    assert row["cycle_us"] > 0
-    assert row["ceiling_x_realtime_at_1khz"] == pytest.approx(1000 / row["cycle_us"])
-    # Each side did its share of the work (a silent side would have timed the run out).
-    assert row["controller_cpu_us_per_cycle"] > 0
+    started = time.monotonic()
+    row = floors.exchange_floor(
+        load_config(PAPER).bus, cycles=300, plant_frames=plant_frames, poll=poll
+    )
+    elapsed_s = time.monotonic() - started
+    # It returned, so every cycle was answered (a silent side raises). The timed part lies
+    # inside the call, and one thread cannot use more CPU than the wall time it ran.
+    assert 0 < row["cycle_us"] * 300 * 1e-6 <= elapsed_s
+    assert 0 < row["controller_cpu_us_per_cycle"] <= row["cycle_us"] * 1.05
     assert row["plant_cpu_us_per_cycle"] > 0
+    assert row["command_resends"] >= 0
 
 
 def test_exchange_floor_keeps_to_a_private_interface_local_group(floors: ModuleType) -> None:
-    bus = load_config(CONFIGS / "paper.toml").bus
+    bus = load_config(PAPER).bus
     private = floors._private_bus(bus)
     assert private.channel != bus.channel
-    assert private.channel.startswith("ff11:")
+    assert multicast_scope(private.channel) == INTERFACE_LOCAL_SCOPE
     assert private.port != bus.port
 
 

@@ -82,9 +82,8 @@ from ballbeam.runtime.frames import (
     VoltageCommand,
 )
 
-from .conftest import CONFIGS, REPO
+from .conftest import PAPER, REPO, ballbeam, ballbeam_argv
 
-PAPER = CONFIGS / "paper.toml"
 PLAN = "plan.kind='rate_limited'"
 FLOOD = Path(__file__).resolve().parent / "helpers" / "flood.py"
 CONTRACT = FrameContract.load()
@@ -109,23 +108,8 @@ def figure(name: str, value: Any) -> None:
 # ---- processes ----------------------------------------------------------------------------
 
 
-def ballbeam_argv(*args: str) -> list[str]:
-    return [sys.executable, "-m", "ballbeam", *args]
-
-
 def set_args(overrides: list[str]) -> list[str]:
     return [item for override in overrides for item in ("--set", override)]
-
-
-def ballbeam(*args: str, timeout_s: float = 120) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        ballbeam_argv(*args),
-        capture_output=True,
-        text=True,
-        timeout=timeout_s,
-        check=False,
-        cwd=REPO,
-    )
 
 
 # Raises the file-size limit's error (EFBIG) instead of killing the process with SIGXFSZ, the

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 from pathlib import Path
 from xml.etree import ElementTree
 
@@ -12,19 +11,11 @@ import pytest
 
 from ballbeam.regress import evaluate
 
-from .conftest import CONFIGS
-
-PAPER = (CONFIGS / "paper.toml").resolve()
+from .conftest import PAPER, ballbeam
 
 
 def regress(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "ballbeam", "regress", *args],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        check=False,
-    )
+    return ballbeam("regress", *args)
 
 
 def test_evaluate_bounds_and_a_missing_value() -> None:
