@@ -159,6 +159,17 @@ def test_round_trip_on_disk(tmp_path: Path) -> None:
     assert read_log(path).topics["/can"].values.shape == (3000,)
 
 
+def test_a_log_whose_directory_takes_no_new_files_is_still_written(tmp_path: Path) -> None:
+    """The chunk-index scratch file goes next to the log where it can; where it cannot (here
+    a path under /proc/self/fd, which refuses new files even to root) it goes elsewhere."""
+    target = tmp_path / "run.mcap"
+    with target.open("wb") as opened:
+        sent = _write_run(f"/proc/self/fd/{opened.fileno()}", 1500)
+    data = target.read_bytes()
+    _check_with_mcap(data, sent)
+    _check_with_read_log(data, sent)
+
+
 def test_indexes_and_checksums_follow_the_mcap_specification() -> None:
     """Every index the summary gives is checked against the bytes it points at, parsed
     straight from the specification: chunk offsets, lengths and CRCs, message index entries,

@@ -10,13 +10,15 @@ the daemon's largest cost in lock-step, and a run's memory grew with its length 
 * each chunk's index record is spilled to an anonymous temporary file as the chunk is written,
   and read back once into the summary section at the end.
 
-Everything except messages and message indexes is serialised by the mcap library's own record
-classes. Schemas and channels are written to the data section outside chunks, before any
-chunk that uses them. Not thread-safe: the recorder serialises access.
+Everything except messages, message indexes and the footer (whose CRC covers its own leading
+fields) is serialised by the mcap library's own record classes. Schemas and channels are
+written to the data section outside chunks, before any chunk that uses them. Not thread-safe:
+the recorder serialises access.
 """
 
 from __future__ import annotations
 
+import contextlib
 import struct
 import sys
 import tempfile
@@ -33,9 +35,9 @@ from mcap.records import Attachment as AttachmentRecord
 from mcap.records import (
     AttachmentIndex,
     Channel,
+    Chunk,
     ChunkIndex,
     DataEnd,
-    Footer,
     Header,
     McapRecord,
     Metadata,
@@ -49,12 +51,11 @@ from mcap.writer import MCAP0_MAGIC
 # opcode, record length, channel id, sequence, log time, publish time (MCAP "Message")
 _MESSAGE_HEAD = struct.Struct("<BQHIQQ")
 _MESSAGE_FIXED_BYTES = 2 + 4 + 8 + 8
-# opcode, record length, start, end, uncompressed size, uncompressed CRC (MCAP "Chunk")
-_CHUNK_HEAD = struct.Struct("<BQQQQI")
 # opcode, record length, channel id, byte length of the (log time, offset) pairs
 _MESSAGE_INDEX_HEAD = struct.Struct("<BQHI")
+# opcode, record length, summary start, summary offset start; then the summary CRC
+_FOOTER_HEAD = struct.Struct("<BQQQ")
 _U32 = struct.Struct("<I")
-_U64 = struct.Struct("<Q")
 _LITTLE_ENDIAN = sys.byteorder == "little"
 COMPRESSION = "zstd"
 
@@ -64,6 +65,15 @@ def _record_bytes(record: McapRecord) -> bytes:
     record.write(builder)
     data: bytes = builder.end()  # type: ignore[no-untyped-call]
     return data
+
+
+def _spill_file(directory: str | None) -> IO[bytes]:
+    """An unnamed file for chunk indexes: in ``directory`` (the log's, so that a full disk is
+    the log's own disk) where it may be created there, else in the system's temporary one."""
+    if directory is not None:
+        with contextlib.suppress(OSError):
+            return tempfile.TemporaryFile(dir=directory)
+    return tempfile.TemporaryFile()
 
 
 @dataclass
@@ -82,7 +92,7 @@ class McapFile:
 
     The magic and the header are written at once; :meth:`finish` writes the summary and the
     footer. Offsets are counted here, so the stream need not be seekable. ``spill_dir`` holds
-    the unnamed file of chunk indexes (default: the system's temporary directory).
+    the unnamed file of chunk indexes where it can (else: the system's temporary directory).
     """
 
     def __init__(
@@ -102,8 +112,8 @@ class McapFile:
         self._attachment_indexes: list[AttachmentIndex] = []
         self._metadata_indexes: list[MetadataIndex] = []
         # Chunk indexes go to disk as they are made: memory stays flat however long the run.
-        # An unnamed file (next to the log, when there is one): nothing is left behind by a crash.
-        self._chunk_index_spill = tempfile.TemporaryFile(dir=spill_dir)  # noqa: SIM115
+        # An unnamed file: nothing is left behind by a crash.
+        self._chunk_index_spill = _spill_file(spill_dir)
         self._chunk = OpenChunk()
         self._write(MCAP0_MAGIC)
         self._write(_record_bytes(Header(profile=profile, library=library)))
@@ -186,10 +196,6 @@ class McapFile:
         chunk.messages += 1
 
     @property
-    def open_messages(self) -> int:
-        return self._chunk.messages
-
-    @property
     def open_bytes(self) -> int:
         return len(self._chunk.records)
 
@@ -208,21 +214,19 @@ class McapFile:
         """Compress and write a taken chunk, then its message indexes."""
         records = chunk.records
         compressed = self._compressor.compress(records)
-        compression = COMPRESSION.encode()
-        body_bytes = (
-            _CHUNK_HEAD.size - 9 + _U32.size + len(compression) + _U64.size + len(compressed)
-        )
         chunk_start = self._position
         self._write(
-            _CHUNK_HEAD.pack(
-                Opcode.CHUNK, body_bytes, chunk.start_ns, chunk.end_ns, len(records),
-                zlib.crc32(records),
+            _record_bytes(
+                Chunk(
+                    compression=COMPRESSION,
+                    data=compressed,
+                    message_start_time=chunk.start_ns,
+                    message_end_time=chunk.end_ns,
+                    uncompressed_crc=zlib.crc32(records),
+                    uncompressed_size=len(records),
+                )
             )
-            + _U32.pack(len(compression))
-            + compression
-            + _U64.pack(len(compressed))
         )
-        self._write(compressed)
         chunk_length = self._position - chunk_start
 
         index_offsets: dict[int, int] = {}
@@ -295,19 +299,10 @@ class McapFile:
         group(Opcode.METADATA_INDEX, map(_record_bytes, self._metadata_indexes))
         summary_offset_start = self._position
         group(None, map(_record_bytes, offsets))
-        footer_fields = struct.pack(
-            "<BQQQ", Opcode.FOOTER, 8 + 8 + 4, summary_start, summary_offset_start
+        footer_head = _FOOTER_HEAD.pack(
+            Opcode.FOOTER, 8 + 8 + 4, summary_start, summary_offset_start
         )
-        summary_crc = zlib.crc32(footer_fields, summary_crc)
-        footer = _record_bytes(
-            Footer(
-                summary_start=summary_start,
-                summary_offset_start=summary_offset_start,
-                summary_crc=summary_crc,
-            )
-        )
-        assert footer.startswith(footer_fields)
-        self._write(footer)
+        self._write(footer_head + _U32.pack(zlib.crc32(footer_head, summary_crc)))
         self._write(MCAP0_MAGIC)
 
     def discard(self) -> None:

@@ -157,9 +157,12 @@ class Recorder:
         else:
             stream = path
         self._stream = stream
+        spill_dir = os.path.dirname(os.path.abspath(self.path)) if self._owns_stream else None
+        mcap_file: McapFile | None = None
         try:
-            spill_dir = os.path.dirname(os.path.abspath(self.path)) if self._owns_stream else None
-            self._file = McapFile(stream, profile=profile, library=LIBRARY, spill_dir=spill_dir)
+            self._file = mcap_file = McapFile(
+                stream, profile=profile, library=LIBRARY, spill_dir=spill_dir
+            )
             for name, record in metadata_records.items():
                 self._file.add_metadata(name, record)
             now_ns = time.time_ns()
@@ -168,6 +171,8 @@ class Recorder:
             # On disk now, so that a run which dies early still says what it was.
             stream.flush()
         except OSError as exc:
+            if mcap_file is not None:
+                mcap_file.discard()
             if self._owns_stream:
                 self._close_stream_quietly()
             raise _recorder_error(f"cannot write log {self.path}: {_os_reason(exc)}", exc) from exc
