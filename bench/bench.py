@@ -30,7 +30,7 @@ from ballbeam.analysis import summarise
 from ballbeam.assembly import controller_design, make_plan, run_offline
 from ballbeam.config import load_config
 from ballbeam.logs.reader import RunLog, read_log
-from ballbeam.runtime.frames import SENSOR_ID
+from ballbeam.protocol.frames import SENSOR_ID
 from ballbeam.runtime.launcher import launch_run
 
 REPO = Path(__file__).resolve().parents[1]

@@ -62,16 +62,7 @@ from ballbeam import cli
 from ballbeam.analysis import summarise
 from ballbeam.config import DEFAULT_BUS_GROUP, BusSection, Config, load_config
 from ballbeam.logs.reader import RunLog, read_log
-from ballbeam.replay import verify
-from ballbeam.runtime import channels
-from ballbeam.runtime.bus import (
-    IPV6_MULTICAST_ALL,
-    free_udp_port,
-    isolated_group,
-    multicast_scope,
-    open_bus,
-)
-from ballbeam.runtime.frames import (
+from ballbeam.protocol.frames import (
     SENSOR_ID,
     STATUS_WATCHDOG,
     TRUTH_ANGLE_ID,
@@ -80,6 +71,15 @@ from ballbeam.runtime.frames import (
     SensorFrame,
     TruthAngle,
     VoltageCommand,
+)
+from ballbeam.replay import verify
+from ballbeam.runtime import channels
+from ballbeam.runtime.bus import (
+    IPV6_MULTICAST_ALL,
+    free_udp_port,
+    isolated_group,
+    multicast_scope,
+    open_bus,
 )
 
 from .conftest import PAPER, REPO, ballbeam, ballbeam_argv

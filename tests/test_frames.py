@@ -16,8 +16,9 @@ from cantools.autosar.end_to_end import apply_profile5_crc
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
+import ballbeam.protocol
 from ballbeam.errors import BallbeamError, FrameError
-from ballbeam.runtime.frames import (
+from ballbeam.protocol.frames import (
     SENSOR_ID,
     TRUTH_ANGLE_ID,
     TRUTH_BALL_ID,
@@ -34,9 +35,7 @@ from ballbeam.runtime.frames import (
     next_counter,
 )
 
-from .conftest import CONFIGS
-
-DBC_PATH = CONFIGS / "ballbeam.dbc"
+DBC_PATH = Path(ballbeam.protocol.__file__).parent / "ballbeam.dbc"
 IDS = (VOLTAGE_COMMAND_ID, SENSOR_ID, TRUTH_ANGLE_ID, TRUTH_BALL_ID)
 
 # Factors and raw limits as the contract states them (symmetric ranges for the scaled signals).
@@ -525,7 +524,7 @@ def test_counter_check_counts_losses_and_repeats(start: int, steps: list[tuple[i
 
 def test_default_path_is_the_repo_dbc() -> None:
     contract = FrameContract.load()
-    assert contract.path == DBC_PATH
+    assert Path(contract.path) == DBC_PATH
     assert "BO_ 256 VoltageCommand" in contract.dbc_text
     assert {node.name for node in contract.database.nodes} == {"Controller", "Emulator"}
 

@@ -11,6 +11,12 @@ from scipy.integrate import solve_ivp
 from ballbeam.assembly import controller_design
 from ballbeam.config import load_config
 from ballbeam.core.guard import AngleGuard, guarded_voltage, stopping_distance_rad
+from ballbeam.core.model import PlantConstants
+
+CONSTANTS = PlantConstants()
+ALPHA = CONSTANTS.alpha
+ALPHA_BETA = CONSTANTS.alpha * CONSTANTS.beta
+BRAKE_V = 4.9  # the default: 5 V less the 0.1 V dead zone
 
 
 @pytest.fixture(scope="module")
@@ -20,34 +26,55 @@ def guard() -> AngleGuard:
     return design.guard
 
 
-def test_stopping_distance_matches_integration(guard: AngleGuard) -> None:
-    for rate in (0.5, 3.0, 9.0):
+def integrated_stopping_distance(rate_rad_s: float) -> float:
+    def braking(_t: float, y: np.ndarray) -> list[float]:
+        return [y[1], -ALPHA_BETA * y[1] - ALPHA * BRAKE_V]
 
-        def braking(_t: float, y: np.ndarray) -> list[float]:
-            return [y[1], -guard.alpha_beta * y[1] - guard.alpha * guard.brake_v]
+    stopped = lambda _t, y: y[1]  # noqa: E731
+    stopped.terminal = True  # type: ignore[attr-defined]
+    solution = solve_ivp(braking, (0, 1), [0.0, rate_rad_s], events=stopped, rtol=1e-11,
+                         atol=1e-13)
+    return float(solution.y[0, -1])
 
-        stopped = lambda _t, y: y[1]  # noqa: E731
-        stopped.terminal = True  # type: ignore[attr-defined]
-        solution = solve_ivp(braking, (0, 1), [0.0, rate], events=stopped, rtol=1e-11, atol=1e-13)
-        assert stopping_distance_rad(guard, rate) == pytest.approx(solution.y[0, -1], rel=1e-7)
+
+@pytest.mark.parametrize("rate_rad_s", [0.005, 0.5, 3.0, 9.0, 27.9, 40.0, 200.0])
+def test_stopping_distance_is_the_motors_and_never_shorter(
+    guard: AngleGuard, rate_rad_s: float
+) -> None:
+    """Over the table (3× the motor's top speed, 9.3 rad/s at 5 V) its chords of the convex
+    distance are within 1e-7 rad of the integrated braking motor; beyond it the top slope
+    1/αβ overestimates. Either way it never promises a shorter stop."""
+    exact = integrated_stopping_distance(rate_rad_s)
+    table = stopping_distance_rad(guard, rate_rad_s)
+    if rate_rad_s < len(guard.stopping_rad) * guard.rate_step_rad_s:
+        assert table == pytest.approx(exact, abs=1e-7 + 1e-6 * exact)
+    assert table >= exact - 1e-12
+
+
+def test_stopping_distance_edge_cases(guard: AngleGuard) -> None:
     assert stopping_distance_rad(guard, -1.0) == 0.0
+    assert stopping_distance_rad(guard, 0.0) == 0.0
+    assert stopping_distance_rad(guard, math.nan) == math.inf  # no stop is promised
 
 
 def test_guard_keeps_the_servo_inside_even_when_driven_at_the_limit(guard: AngleGuard) -> None:
     """Demand +5 V for 0.5 s from -40° and simulate the motor model exactly: θ never passes
     the guard's limit, though the unguarded demand would run into the hard stop."""
+    design = controller_design(load_config(None, ["plan.kind=rate_limited"]))
+    Ad = np.array(design.observer.Ad)
+    bd = np.array(design.observer.Bd)
     state = np.array([math.radians(-40), 0.0, 0.0, 0.0])
     highest = -math.inf
     for _ in range(500):
-        voltage = guarded_voltage(guard, state, 5.0)
-        state = guard.Ad @ state + guard.Bd[:, 0] * voltage
+        voltage = guarded_voltage(guard, tuple(state.tolist()), 5.0)  # type: ignore[arg-type]
+        state = Ad @ state + bd * voltage
         highest = max(highest, state[0])
     assert highest <= guard.theta_limit_rad + 1e-9
     assert highest >= guard.theta_limit_rad - math.radians(0.5)  # and it does get close
 
 
 def test_guard_passes_demands_that_are_safe(guard: AngleGuard) -> None:
-    state = np.zeros(4)
+    state = (0.0, 0.0, 0.0, 0.0)
     for demand in (-3.0, 0.0, 2.5):
         assert guarded_voltage(guard, state, demand) == demand
     assert guarded_voltage(guard, state, 12.0) == guard.voltage_limit_v

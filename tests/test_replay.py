@@ -1,18 +1,22 @@
 """Replay of recorded runs: the golden log pins the log format, the analysis and the
-controller (``--verify`` re-runs today's controller on its recorded sensor frames)."""
+controller (``--verify`` re-runs the recorded design through today's control law on the
+recorded sensor frames)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from ballbeam import replay
 from ballbeam.analysis import summarise
-from ballbeam.logs.reader import read_log
+from ballbeam.logs import design_record
+from ballbeam.logs.reader import RunLog, read_log
 
 GOLDEN = Path(__file__).parent / "data" / "golden_paper_1s.mcap"
 
@@ -33,8 +37,9 @@ def test_golden_log_metrics_are_pinned() -> None:
     assert summary["truncated"] is False
     assert summary["end_reason"] == "completed"
     assert summary["settle_time_s"] is None  # one second is too short to settle
-    assert summary["max_abs_theta_deg"] == pytest.approx(51.985033710014726, rel=1e-12)
-    assert summary["tracking_rms_mm"] == pytest.approx(0.46372882504381646, rel=1e-9)
+    # The start is −52° (to the truth frame's 1e-5 rad); the guard never lets θ past it.
+    assert summary["max_abs_theta_deg"] == pytest.approx(51.99993061268813, rel=1e-12)
+    assert summary["tracking_rms_mm"] == pytest.approx(0.46224681190409883, rel=1e-9)
     assert summary["saturation_fraction"] == pytest.approx(0.053)
     assert summary["theta_violation_s"] == 0.0
     assert summary["frames_lost"] == 0 and summary["frames_rejected"] == 0
@@ -44,22 +49,54 @@ def test_golden_log_verifies_bit_for_bit() -> None:
     result = replay.verify(read_log(GOLDEN))
     assert result.ok, result.mismatch
     assert result.cycles_checked == 1000
+    assert result.design_source == "recorded"
+    # Today's synthesis agrees with the recorded design to BLAS rounding (information only).
+    assert isinstance(result.resynthesis_difference, float)
+    assert result.resynthesis_difference < 1e-9
 
 
-def test_verify_names_the_first_cycle_a_changed_controller_gets_wrong(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
-    original = replay.controller_design
+def with_design(run_log: RunLog, design_bytes: bytes | None) -> RunLog:
+    attachments = dict(run_log.attachments)
+    attachments.pop(design_record.ATTACHMENT_NAME)
+    if design_bytes is not None:
+        attachments[design_record.ATTACHMENT_NAME] = design_bytes
+    return dataclasses.replace(run_log, attachments=attachments)
 
-    def detuned(config):  # type: ignore[no-untyped-def]
-        tracker = config.tracker.model_copy(update={"r": config.tracker.r * 1.001})
-        return original(config.model_copy(update={"tracker": tracker}))
 
-    monkeypatch.setattr(replay, "controller_design", detuned)
-    result = replay.verify(read_log(GOLDEN))
+def test_verify_names_the_first_cycle_a_changed_design_gets_wrong() -> None:
+    run_log = read_log(GOLDEN)
+    recorded = design_record.decode_design(
+        run_log.attachments[design_record.ATTACHMENT_NAME], "golden"
+    )
+    offsets = np.array(recorded.offset_v)
+    offsets[500:] += 1e-3  # a different feedforward from cycle 500 on
+    tampered = dataclasses.replace(recorded, offset_v=offsets)
+    result = replay.verify(with_design(run_log, design_record.encode_design(tampered)))
     assert not result.ok
     assert result.mismatch is not None
+    assert result.mismatch.cycle == 500
     assert result.mismatch.recorded_v != result.mismatch.replayed_v
+
+
+def test_a_log_without_a_recorded_design_is_verified_against_todays_synthesis() -> None:
+    result = replay.verify(with_design(read_log(GOLDEN), None))
+    assert result.design_source == "resynthesised"
+    assert result.resynthesis_difference is None
+    assert result.cycles_checked >= 1  # exact here only if this machine's BLAS rounds alike
+
+
+@pytest.mark.parametrize(
+    ("payload", "fragment"),
+    [
+        (b"not a zip archive", "unreadable"),
+        (b"", "unreadable"),
+    ],
+)
+def test_a_damaged_design_is_one_clear_error(payload: bytes, fragment: str) -> None:
+    from ballbeam.errors import LogFormatError
+
+    with pytest.raises(LogFormatError, match=fragment):
+        replay.verify(with_design(read_log(GOLDEN), payload))
 
 
 def test_replay_cli_json_and_verify() -> None:
@@ -67,6 +104,8 @@ def test_replay_cli_json_and_verify() -> None:
     assert completed.returncode == 0, completed.stderr
     payload = json.loads(completed.stdout)
     assert payload["verify_ok"] is True and payload["verify_cycles"] == 1000
+    assert payload["verify_design"] == "recorded"
+    assert payload["resynthesis_max_rel_diff"] < 1e-9
 
 
 def test_a_truncated_log_is_read_as_far_as_it_is_intact(tmp_path: Path) -> None:

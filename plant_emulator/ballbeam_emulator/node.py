@@ -20,8 +20,7 @@ from ballbeam.assembly import plant_parameters, sensor_periods_per_cycle
 from ballbeam.config import Config
 from ballbeam.core.plant import PlantPhysics, initial_noise, next_noise, read_sensors
 from ballbeam.errors import FrameError
-from ballbeam.runtime.bus import recv_frame
-from ballbeam.runtime.frames import (
+from ballbeam.protocol.frames import (
     SENSOR_ID,
     STATUS_HELD,
     STATUS_WATCHDOG,
@@ -33,6 +32,7 @@ from ballbeam.runtime.frames import (
     VoltageCommand,
     next_counter,
 )
+from ballbeam.runtime.bus import recv_frame
 from ballbeam.runtime.signals import StopFlag
 from ballbeam.runtime.ticker import Ticker
 

@@ -11,8 +11,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ballbeam.config import Config
-from ballbeam.core.control import ControllerDesign
-from ballbeam.core.guard import AngleGuard
+from ballbeam.core.control import ControllerDesign, ObserverLaw
+from ballbeam.core.guard import make_angle_guard
 from ballbeam.core.metrics import RunMetrics, compute_metrics
 from ballbeam.core.observer import design_observer
 from ballbeam.core.plans import Plan
@@ -97,7 +97,7 @@ def controller_design(config: Config, plan: Plan | None = None) -> ControllerDes
         brake_v = config.controller.theta_guard_brake_v or max(
             0.5 * config.limits.voltage_v, config.limits.voltage_v - config.plant.deadzone_v
         )
-        guard = AngleGuard(
+        guard = make_angle_guard(
             theta_limit_rad=math.radians(
                 config.limits.theta_deg - config.controller.theta_guard_margin_deg
             ),
@@ -110,15 +110,20 @@ def controller_design(config: Config, plan: Plan | None = None) -> ControllerDes
         )
     n_reference = tracker.K.shape[0]
     samples = plan.sample(np.arange(n_reference) * period_s)
+    initial = config.initial.state()
     return ControllerDesign(
-        plan=plan,
-        tracker=tracker,
-        observer=observer,
-        reference_states=samples.states,
-        reference_input_v=samples.input_v,
-        voltage_limit_v=config.limits.voltage_v,
+        period_s=tracker.period_s,
+        plan_duration_s=float(plan.duration_s),
+        gains=np.array(tracker.K[:, 0, :]),
+        offset_v=np.array(tracker.offset_v),
+        final_gain=np.array(tracker.K_final[0]),
+        reference_states=np.array(samples.states),
+        reference_input_v=np.array(samples.input_v),
+        observer=ObserverLaw.from_arrays(observer.Ad, observer.Bd, observer.C, observer.L),
         guard=guard,
-        initial_state=config.initial.state(),
+        voltage_limit_v=config.limits.voltage_v,
+        initial_state=(float(initial[0]), float(initial[1]), float(initial[2]),
+                       float(initial[3])),
         angle_per_count=constants.angle_sensor_gain * encoder_step_rad,
         position_per_count=constants.position_sensor_gain * adc_step_m,
     )

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from ballbeam.config import Config, load_config
+from ballbeam.config import Config, load_config, resolve_config_path
 from ballbeam.errors import BallbeamError
 
 EXIT_USAGE = 2
@@ -34,7 +34,8 @@ def _add_config_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "config",
         nargs="?",
-        help="TOML config file (default: the paper's set-up, as in configs/paper.toml)",
+        help="TOML config file, or a shipped config's name (`ballbeam configs` lists them; "
+        "default: the paper's set-up, as in paper.toml)",
     )
     parser.add_argument(
         "--set",
@@ -113,14 +114,14 @@ def command_simulate(args: argparse.Namespace) -> int:
         print_json(
             {
                 "plan_kind": config.plan.kind,
-                "plan_duration_s": result.design.plan.duration_s,
+                "plan_duration_s": result.design.plan_duration_s,
                 **metrics,
             }
         )
     else:
         print_table(
             f"offline simulation ({config.plan.kind} path, "
-            f"{result.design.plan.duration_s:.4f} s plan)",
+            f"{result.design.plan_duration_s:.4f} s plan)",
             metrics,
         )
     return 0
@@ -210,6 +211,10 @@ def command_replay(args: argparse.Namespace) -> int:
         result = verify(run_log)
         summary["verify_cycles"] = result.cycles_checked
         summary["verify_ok"] = result.ok
+        summary["verify_design"] = result.design_source
+        if result.resynthesis_difference is not None:
+            # Information, not a verdict: today's synthesis on this machine vs the recorded.
+            summary["resynthesis_max_rel_diff"] = result.resynthesis_difference
         if result.mismatch is not None:
             mismatch = result.mismatch
             summary["verify_first_mismatch_cycle"] = mismatch.cycle
@@ -265,7 +270,7 @@ def command_regress(args: argparse.Namespace) -> int:
 
     from ballbeam import regress
 
-    paths = regress.discover(Path(args.directory))
+    paths = regress.discover(args.scenarios)
     with tqdm(total=len(paths), unit="scenario", file=sys.stderr, disable=args.json) as bar:
 
         def done(result: regress.ScenarioResult) -> None:
@@ -281,6 +286,22 @@ def command_regress(args: argparse.Namespace) -> int:
     else:
         print(regress.table(results))
     return 0 if all(result.passed for result in results) else 1
+
+
+def command_configs(args: argparse.Namespace) -> int:
+    from ballbeam.config import resolve_config_path, shipped_configs
+
+    root = shipped_configs()
+    if args.name:
+        path = resolve_config_path(args.name)
+        print(path.read_text(encoding="utf-8"), end="")
+        return 0
+    print(f"shipped configs ({root}):")
+    for path in sorted(root.rglob("*.toml")):
+        lines = path.read_text(encoding="utf-8").splitlines()
+        about = next((line.lstrip("# ").strip() for line in lines if line.startswith("#")), "")
+        print(f"  {path.relative_to(root).with_suffix('')!s:36} {about}")
+    return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -328,7 +349,10 @@ def build_parser() -> argparse.ArgumentParser:
         "regress", help="run every scenario over the bus and check its [expect] bounds"
     )
     regress_parser.add_argument(
-        "directory", nargs="?", default="configs/scenarios", help="default: configs/scenarios"
+        "scenarios",
+        nargs="*",
+        metavar="SCENARIO",
+        help="scenario files or directories, on disk or shipped (default: every shipped one)",
     )
     regress_parser.add_argument(
         "--jobs", type=_positive_int, default=None, help="scenarios at once (default: one per core)"
@@ -345,6 +369,12 @@ def build_parser() -> argparse.ArgumentParser:
     regress_parser.add_argument("--junit-xml", metavar="PATH", help="write a JUnit XML report")
     regress_parser.set_defaults(handler=command_regress)
 
+    configs = commands.add_parser(
+        "configs", help="list the configs shipped with the package, or print one"
+    )
+    configs.add_argument("name", nargs="?", help="a shipped config to print (to copy and edit)")
+    configs.set_defaults(handler=command_configs)
+
     emulator = commands.add_parser("emulator", help="run the plant emulator alone")
     _add_config_arguments(emulator)
     emulator.set_defaults(handler=command_emulator)
@@ -356,6 +386,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     handler: Callable[[argparse.Namespace], int] = args.handler
     try:
+        if getattr(args, "config", None):
+            # Children of `run` and the log get the file itself, wherever the name led.
+            args.config = str(resolve_config_path(args.config).resolve())
         return handler(args)
     except BallbeamError as error:
         print(f"ballbeam: error: {error}", file=sys.stderr)

@@ -1,8 +1,12 @@
-"""Run configuration: pydantic models loaded from TOML files in ``configs/``.
+"""Run configuration: pydantic models loaded from TOML files.
 
 A config file may ``extends = "other.toml"`` (path relative to the file) and override a few
 keys; ``--set dotted.key=value`` overrides are merged the same way and validated with the rest.
 Unknown keys, wrong types and out-of-range values are refused with a message naming the key.
+
+The repository's ``configs/`` ship with the package (``ballbeam/configs``, package data): a
+config argument that names no file is looked up there (``paper``, ``paths/bang_bang``,
+``scenarios/noise_heavy.toml``), so an installed package runs from any directory.
 """
 
 from __future__ import annotations
@@ -10,6 +14,7 @@ from __future__ import annotations
 import math
 import tomllib
 from collections.abc import Iterable, Mapping
+from importlib import resources
 from pathlib import Path
 from typing import Any, Literal
 
@@ -391,9 +396,29 @@ def config_from_mapping(data: Mapping[str, Any], source: str = "config") -> Conf
         raise ConfigError(_describe(error, source)) from error
 
 
+def shipped_configs() -> Path:
+    """The configs shipped with the package (the repository's ``configs/``)."""
+    return Path(str(resources.files("ballbeam") / "configs"))
+
+
+def resolve_config_path(name: str | Path) -> Path:
+    """``name`` itself if it exists, else the shipped config it names (``.toml`` optional)."""
+    path = Path(name)
+    if path.exists():
+        return path
+    shipped = shipped_configs()
+    for candidate in (shipped / path, shipped / f"{path}.toml"):
+        if candidate.is_file():
+            return candidate
+    raise ConfigError(
+        f"config file not found: {name} (nor a shipped config of that name; "
+        "`ballbeam configs` lists them)"
+    )
+
+
 def load_config(path: str | Path | None, overrides: Iterable[str] = ()) -> Config:
     """Load ``path`` (or the paper's defaults when None) and apply ``--set`` overrides."""
-    data: dict[str, Any] = {} if path is None else _read_toml(Path(path))
+    data: dict[str, Any] = {} if path is None else _read_toml(resolve_config_path(path))
     for assignment in overrides:
         data = _deep_merge(data, parse_override(assignment))
     return config_from_mapping(data, str(path) if path is not None else "config")

@@ -1,4 +1,5 @@
-"""The config-driven regression suite: every ``configs/scenarios/*.toml`` is a run plus bounds.
+"""The config-driven regression suite: every scenario file (``configs/scenarios/*.toml``) is a
+run plus bounds.
 
 Each scenario runs over the real bus (two processes, lock-step unless it says real time),
 several at once; the verdict is a table scenario × metric × bound × value × pass/fail.
@@ -16,7 +17,7 @@ from pathlib import Path
 from typing import Any
 from xml.etree import ElementTree
 
-from ballbeam.config import load_config
+from ballbeam.config import load_config, resolve_config_path, shipped_configs
 from ballbeam.errors import BallbeamError, ConfigError
 
 
@@ -42,13 +43,23 @@ class ScenarioResult:
         return self.error is None and all(check.passed for check in self.checks)
 
 
-def discover(directory: Path) -> list[Path]:
-    if not directory.is_dir():
-        raise ConfigError(f"scenario directory not found: {directory}")
-    scenarios = sorted(directory.glob("*.toml"))
-    if not scenarios:
-        raise ConfigError(f"no scenario files (*.toml) in {directory}")
-    return scenarios
+def discover(locations: Iterable[str | Path] = ()) -> list[Path]:
+    """Scenario files: each location is a file or a directory of ``*.toml`` files, on disk or
+    shipped with the package (``scenarios``, ``scenarios/noise_heavy``); none: every shipped
+    scenario."""
+    found: list[Path] = []
+    for location in list(locations) or [shipped_configs() / "scenarios"]:
+        path = Path(location)
+        if not path.exists() and (shipped_configs() / path).is_dir():
+            path = shipped_configs() / path
+        if path.is_dir():
+            scenarios = sorted(path.glob("*.toml"))
+            if not scenarios:
+                raise ConfigError(f"no scenario files (*.toml) in {path}")
+            found += scenarios
+        else:
+            found.append(resolve_config_path(path))
+    return found
 
 
 def evaluate(expect: dict[str, dict[str, float]], summary: dict[str, Any]) -> tuple[Check, ...]:

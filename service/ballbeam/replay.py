@@ -1,8 +1,12 @@
 """``replay --verify``: re-run the controller from a log and prove it explains the run.
 
-The recorded config rebuilds the same design; the recorded sensor readings (and the cycles
-where the daemon coasted, faulted or skipped) drive the same pure control law. Every
-recorded voltage command must come out identical, bit for bit.
+The log carries the design the run used (``controller_design.npz``); the recorded sensor
+readings (and the cycles where the daemon coasted, faulted or skipped) drive the same pure
+control law, which is plain float arithmetic: every recorded voltage command must come out
+identical, bit for bit, on any machine. Separately, today's code re-synthesises the design
+from the recorded config, and the largest relative difference is reported (information: a
+different BLAS kernel or SciPy moves the synthesis in its last bits, not the replay).
+A log without a recorded design (older format) is verified against the re-synthesised one.
 """
 
 from __future__ import annotations
@@ -14,10 +18,11 @@ import numpy as np
 
 from ballbeam.analysis import check_layouts
 from ballbeam.assembly import controller_design
-from ballbeam.config import config_from_mapping
-from ballbeam.core.control import ControllerState, coast_cycles, control_cycle
+from ballbeam.config import Config, config_from_mapping
+from ballbeam.core.control import ControllerDesign, ControllerState, coast_cycles, control_cycle
 from ballbeam.core.plant import SensorReading
-from ballbeam.errors import LogFormatError
+from ballbeam.errors import BallbeamError, LogFormatError
+from ballbeam.logs import design_record
 from ballbeam.logs.reader import RunLog
 
 VERIFY_TOPICS = ("/sensor", "/command", "/timing")
@@ -35,6 +40,10 @@ class Mismatch:
 class VerifyResult:
     cycles_checked: int
     mismatch: Mismatch | None
+    design_source: str  # "recorded" or "resynthesised" (a log without a recorded design)
+    # Today's synthesis against the recorded design: largest relative difference, or the
+    # reason it could not be computed. None when there is no recorded design to compare.
+    resynthesis_difference: float | str | None
 
     @property
     def ok(self) -> bool:
@@ -62,7 +71,7 @@ def verify(run_log: RunLog) -> VerifyResult:
     count = min(len(sensor), len(command), len(timing))  # a truncated log: as far as it goes
     if count and not (np.array_equal(sensor["cycle"][:count], command["cycle"][:count])):
         raise LogFormatError(f"{run_log.path}: /sensor and /command cycles do not line up")
-    design = controller_design(config)
+    design, source, difference = _designs(run_log, config)
     state = ControllerState()
     held_v = 0.0
     for index in range(count):
@@ -87,8 +96,24 @@ def verify(run_log: RunLog) -> VerifyResult:
             state, output = control_cycle(design, state, reading)
             replayed_v = output.voltage_v
         if replayed_v != recorded_v or state.cycle - 1 != int(command["cycle"][index]):
-            return VerifyResult(
-                index + 1, Mismatch(index, int(command["cycle"][index]), recorded_v, replayed_v)
-            )
+            mismatch = Mismatch(index, int(command["cycle"][index]), recorded_v, replayed_v)
+            return VerifyResult(index + 1, mismatch, source, difference)
         held_v = replayed_v
-    return VerifyResult(count, None)
+    return VerifyResult(count, None, source, difference)
+
+
+def _designs(
+    run_log: RunLog, config: Config
+) -> tuple[ControllerDesign, str, float | str | None]:
+    """The design to replay, where it came from, and how today's synthesis compares."""
+    data = run_log.attachments.get(design_record.ATTACHMENT_NAME)
+    if data is None:
+        return controller_design(config), "resynthesised", None
+    recorded = design_record.decode_design(data, f"{run_log.path}")
+    try:
+        difference: float | str = design_record.design_difference(
+            recorded, controller_design(config)
+        )
+    except BallbeamError as error:  # today's code refuses the recorded config
+        difference = f"cannot re-synthesise: {error}"
+    return recorded, "recorded", difference

@@ -41,8 +41,7 @@ import can
 import msgpack
 
 from ballbeam.config import BusSection
-from ballbeam.runtime.bus import open_bus
-from ballbeam.runtime.frames import (
+from ballbeam.protocol.frames import (
     SENSOR_ID,
     TRUTH_ANGLE_ID,
     TRUTH_BALL_ID,
@@ -50,6 +49,7 @@ from ballbeam.runtime.frames import (
     FrameContract,
     e2e_profile5_crc,
 )
+from ballbeam.runtime.bus import open_bus
 
 OUR_IDS = (VOLTAGE_COMMAND_ID, SENSOR_ID, TRUTH_ANGLE_ID, TRUTH_BALL_ID)
 BURST_PERIOD_NS = 1_000_000

@@ -4,6 +4,11 @@ The safe set is {θ + d(θ̇) <= θ_limit} (and its mirror), where d is the exac
 distance of the motor model θ̈ = −αβ·θ̇ − α·V_brake under full braking. Each cycle the
 largest (smallest) voltage whose one-period successor stays in the safe set is found; the
 successor is linear in u and d is increasing, so the bound is a monotone 1-D root.
+
+The cycle runs in plain float arithmetic (a recorded run must replay bit for bit on any CPU,
+and libm's logarithm is not the same on every machine): d comes from a table computed at
+design time and interpolated linearly. d is convex, so the chords lie above it: the table
+never promises a shorter stop than the motor gives.
 """
 
 from __future__ import annotations
@@ -14,39 +19,106 @@ from dataclasses import dataclass
 import numpy as np
 
 BISECTION_STEPS = 40
+STOPPING_TABLE_STEP_RAD_S = 0.01  # interpolation error ≤ step²/(8·α·V_brake) ≈ 2e-8 rad
+STOPPING_TABLE_SLEW_MULTIPLE = 3.0  # the table covers 3× the motor's top speed
+
+Row4 = tuple[float, float, float, float]
 
 
 @dataclass(frozen=True)
 class AngleGuard:
+    """The guard as the cycle runs it: plain floats, recorded with the design.
+
+    ``theta_row``/``rate_row``: θ and θ̇ after the look-ahead per unit of each state (the first
+    two rows of Ad over one period, plus the latency in real time); ``theta_per_v``/
+    ``rate_per_v``: the same per volt (Bd). ``stopping_rad[i]``: stopping distance from
+    rate ``i·rate_step_rad_s``; beyond the table it grows by ``beyond_slope_s`` per rad/s
+    (1/αβ, the largest slope d can have).
+    """
+
     theta_limit_rad: float  # the angle the servo must not pass (limit minus a margin)
-    alpha: float  # model α [rad/s² per V]
-    alpha_beta: float  # model αβ [1/s]
-    brake_v: float  # braking voltage counted on (V_max less a dead-zone allowance)
     voltage_limit_v: float
-    Ad: np.ndarray  # (4, 4) over the look-ahead: one period, plus the latency in real time
-    Bd: np.ndarray  # (4, 1)
+    theta_row: Row4
+    rate_row: Row4
+    theta_per_v: float
+    rate_per_v: float
+    rate_step_rad_s: float
+    stopping_rad: tuple[float, ...]
+    beyond_slope_s: float
 
 
-def stopping_distance_rad(guard: AngleGuard, rate_rad_s: float) -> float:
+def exact_stopping_distance_rad(
+    alpha: float, alpha_beta: float, brake_v: float, rate_rad_s: np.ndarray
+) -> np.ndarray:
     """Angle travelled from rate ω > 0 until rest under full braking (0 for ω <= 0).
 
     ω̇ = −aω − c with a = αβ, c = α·V_brake: stops at t* = ln(1 + aω/c)/a after
     d = ω/a − (c/a²)·ln(1 + aω/c)."""
+    a, c = alpha_beta, alpha * brake_v
+    rate = np.maximum(np.asarray(rate_rad_s, dtype=float), 0.0)
+    result: np.ndarray = rate / a - (c / (a * a)) * np.log1p(a * rate / c)
+    return result
+
+
+def make_angle_guard(
+    *,
+    theta_limit_rad: float,
+    alpha: float,
+    alpha_beta: float,
+    brake_v: float,
+    voltage_limit_v: float,
+    Ad: np.ndarray,
+    Bd: np.ndarray,
+) -> AngleGuard:
+    """The guard for a motor model (α, αβ), a braking voltage and a look-ahead (Ad, Bd)."""
+    top_rate = STOPPING_TABLE_SLEW_MULTIPLE * voltage_limit_v * alpha / alpha_beta
+    count = math.ceil(top_rate / STOPPING_TABLE_STEP_RAD_S) + 1
+    rates = np.arange(count) * STOPPING_TABLE_STEP_RAD_S
+    table = exact_stopping_distance_rad(alpha, alpha_beta, brake_v, rates)
+    return AngleGuard(
+        theta_limit_rad=float(theta_limit_rad),
+        voltage_limit_v=float(voltage_limit_v),
+        theta_row=_row(Ad[0]),
+        rate_row=_row(Ad[1]),
+        theta_per_v=float(Bd[0, 0]),
+        rate_per_v=float(Bd[1, 0]),
+        rate_step_rad_s=STOPPING_TABLE_STEP_RAD_S,
+        stopping_rad=tuple(table.tolist()),
+        beyond_slope_s=1.0 / alpha_beta,
+    )
+
+
+def _row(values: np.ndarray) -> Row4:
+    a, b, c, d = (float(value) for value in values)
+    return (a, b, c, d)
+
+
+def stopping_distance_rad(guard: AngleGuard, rate_rad_s: float) -> float:
+    """The table's stopping distance from ``rate_rad_s`` (0 for a rate <= 0)."""
     if rate_rad_s <= 0.0:
         return 0.0
-    a = guard.alpha_beta
-    c = guard.alpha * guard.brake_v
-    return rate_rad_s / a - (c / (a * a)) * math.log1p(a * rate_rad_s / c)
+    table = guard.stopping_rad
+    position = rate_rad_s / guard.rate_step_rad_s
+    last = len(table) - 1
+    if not position < last:  # beyond the table (or NaN: no stop is promised)
+        if position != position:
+            return math.inf
+        return table[last] + (rate_rad_s - last * guard.rate_step_rad_s) * guard.beyond_slope_s
+    index = int(position)
+    fraction = position - index
+    return table[index] + fraction * (table[index + 1] - table[index])
 
 
-def guarded_voltage(guard: AngleGuard, estimate: np.ndarray, requested_v: float) -> float:
+def guarded_voltage(guard: AngleGuard, estimate: Row4, requested_v: float) -> float:
     """``requested_v`` clamped to ±V and to the guard's safe interval for this state."""
-    # The successor is (free response) + Bd·u: the matrix part once per cycle, the rest in
-    # scalars (the same floating-point operations as the whole expression, so bit for bit).
-    theta_free = float(guard.Ad[0] @ estimate)
-    rate_free = float(guard.Ad[1] @ estimate)
-    theta_per_v = float(guard.Bd[0, 0])
-    rate_per_v = float(guard.Bd[1, 0])
+    x0, x1, x2, x3 = estimate
+    t0, t1, t2, t3 = guard.theta_row
+    r0, r1, r2, r3 = guard.rate_row
+    # The successor is (free response) + Bd·u; the free part once per cycle.
+    theta_free = t0 * x0 + t1 * x1 + t2 * x2 + t3 * x3
+    rate_free = r0 * x0 + r1 * x1 + r2 * x2 + r3 * x3
+    theta_per_v = guard.theta_per_v
+    rate_per_v = guard.rate_per_v
 
     def margin(input_v: float, sign: float) -> float:
         """Distance left to the limit (side ``sign``) after one period at ``input_v``."""

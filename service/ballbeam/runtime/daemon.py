@@ -27,9 +27,7 @@ from ballbeam.core.control import (
 from ballbeam.core.plant import SensorReading
 from ballbeam.errors import BallbeamError
 from ballbeam.logs.recorder import Recorder
-from ballbeam.runtime import channels
-from ballbeam.runtime.bus import recv_frame
-from ballbeam.runtime.frames import (
+from ballbeam.protocol.frames import (
     SENSOR_ID,
     VOLTAGE_COMMAND_ID,
     CounterCheck,
@@ -40,6 +38,8 @@ from ballbeam.runtime.frames import (
     TruthBall,
     next_counter,
 )
+from ballbeam.runtime import channels
+from ballbeam.runtime.bus import recv_frame
 from ballbeam.runtime.signals import StopFlag
 from ballbeam.runtime.ticker import Ticker
 
@@ -272,10 +272,10 @@ class ControllerDaemon:
         self._command(cycle, output.voltage_v, output.requested_v, enable=True)
         estimate = output.estimate
         self.recorder.record(self.handles["/estimate"], self.log_time_ns,
-                             (cycle, *estimate.tolist()))
+                             (cycle, *estimate))
         reference, reference_input_v = self.design.reference(cycle)
         self.recorder.record(self.handles["/reference"], self.log_time_ns,
-                             (cycle, *reference.tolist(), reference_input_v))
+                             (cycle, *reference, reference_input_v))
         self._watch_theta(float(estimate[0]))
 
     def _record_sensor(self, cycle: int, reading: SensorReading | None) -> None:
@@ -290,8 +290,8 @@ class ControllerDaemon:
             self.log_time_ns,
             (cycle, 1, sensor.counter, sensor.status, reading.angle_counts,
              reading.position_counts,
-             float(measurement[0]) / self.config.model.angle_sensor_gain,
-             float(measurement[1]) / self.config.model.position_sensor_gain),
+             measurement[0] / self.config.model.angle_sensor_gain,
+             measurement[1] / self.config.model.position_sensor_gain),
         )
 
     def _fault_cycle(self) -> None:

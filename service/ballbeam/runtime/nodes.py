@@ -20,8 +20,8 @@ from pathlib import Path
 
 from ballbeam.config import Config
 from ballbeam.errors import RecorderError
+from ballbeam.protocol.frames import FrameContract
 from ballbeam.runtime.bus import open_bus
-from ballbeam.runtime.frames import FrameContract
 from ballbeam.runtime.signals import StopFlag
 
 log = logging.getLogger("ballbeam")
@@ -101,6 +101,7 @@ def settle_heap() -> None:
 def run_daemon(config: Config, log_path: Path, config_path: str | None) -> Path:
     """Plan, synthesise, open the recorder and the bus, run, finish the file. Returns the log."""
     from ballbeam.assembly import controller_design
+    from ballbeam.logs import design_record
     from ballbeam.logs.recorder import Recorder
     from ballbeam.runtime.daemon import ControllerDaemon
 
@@ -114,6 +115,8 @@ def run_daemon(config: Config, log_path: Path, config_path: str | None) -> Path:
     contract = FrameContract.load()
     resolved = json.dumps(config.model_dump(mode="json"), sort_keys=True)
     attachments = [
+        (design_record.ATTACHMENT_NAME, design_record.MEDIA_TYPE,
+         design_record.encode_design(design)),
         ("ballbeam.dbc", "text/plain", contract.dbc_text.encode()),
         ("config.resolved.json", "application/json", resolved.encode()),
     ]
@@ -129,7 +132,7 @@ def run_daemon(config: Config, log_path: Path, config_path: str | None) -> Path:
             "run": {
                 "mode": config.run.mode,
                 "plan_kind": config.plan.kind,
-                "plan_duration_s": repr(design.plan.duration_s),
+                "plan_duration_s": repr(design.plan_duration_s),
                 "period_ns": str(config.controller.period_ns),
                 "sensor_period_ns": str(1_000_000_000 // config.plant.sensor_rate_hz),
                 "bus": f"{config.bus.interface}:{config.bus.channel}",

@@ -1,7 +1,7 @@
 """The CAN frame contract: encode and decode the four ballbeam frames, check their counters.
 
-The contract is defined once, in ``configs/ballbeam.dbc``, and loaded with cantools by both
-processes. :meth:`FrameContract.load` reads each signal's position, sign, scale and range from
+The contract is defined once, in ``ballbeam.dbc`` beside this module (package data), and
+loaded with cantools by both processes. :meth:`FrameContract.load` reads each signal's position, sign, scale and range from
 the DBC and refuses a file that breaks the fixed parts of the contract (ids, lengths, the E2E
 header). Encoding and decoding then run on those precomputed layouts with plain integer
 arithmetic, because they run at 1 kHz in both processes: cantools' own strict encode plus its
@@ -18,6 +18,7 @@ import dataclasses
 import math
 import operator
 from dataclasses import dataclass
+from importlib import resources
 from pathlib import Path
 from typing import Final, Literal, TypeAlias
 
@@ -32,7 +33,7 @@ TRUTH_BALL_ID: Final = 0x103
 FRAME_LENGTH: Final = 8
 COUNTER_MODULUS: Final = 256
 
-DEFAULT_DBC_PATH: Final = Path(__file__).resolve().parents[3] / "configs" / "ballbeam.dbc"
+DBC_RESOURCE: Final = "ballbeam.dbc"  # package data of ballbeam.protocol
 
 RejectReason: TypeAlias = Literal["unknown_id", "length", "crc", "range"]
 CounterVerdict: TypeAlias = Literal["ok", "repeated", "stale"]
@@ -228,7 +229,7 @@ def _field_from_signal(
 
 
 def _layout_from_message(
-    database: cantools.database.can.Database, name: str, path: Path
+    database: cantools.database.can.Database, name: str, path: str
 ) -> _Layout:
     frame_id, frame_type, payload = _CONTRACT[name]
     try:
@@ -291,7 +292,7 @@ class FrameContract:
 
     __slots__ = ("_by_id", "_by_type", "database", "dbc_text", "path")
 
-    def __init__(self, path: Path, dbc_text: str, database: cantools.database.can.Database) -> None:
+    def __init__(self, path: str, dbc_text: str, database: cantools.database.can.Database) -> None:
         """Use :meth:`load`; this checks the contract and precomputes the layouts."""
         self.path = path
         self.dbc_text = dbc_text  # the exact contract text, e.g. for embedding in a run log
@@ -302,19 +303,20 @@ class FrameContract:
 
     @classmethod
     def load(cls, path: Path | None = None) -> FrameContract:
-        """Load and check the DBC at ``path`` (default: the repo's ``configs/ballbeam.dbc``)."""
-        path = DEFAULT_DBC_PATH if path is None else Path(path)
+        """Load and check the DBC at ``path`` (default: the one shipped with the package)."""
+        source = resources.files("ballbeam.protocol") / DBC_RESOURCE if path is None else path
+        where = str(source)
         try:
-            text = path.read_text(encoding="utf-8")
+            text = source.read_text(encoding="utf-8")
         except (OSError, UnicodeDecodeError) as exc:
-            raise FrameError(f"{path}: cannot read the frame contract DBC: {exc}") from exc
+            raise FrameError(f"{where}: cannot read the frame contract DBC: {exc}") from exc
         try:
             database = cantools.database.load_string(text, database_format="dbc")
         except Exception as exc:  # the DBC parser raises assorted types on malformed input
-            raise FrameError(f"{path}: not a valid DBC file: {exc}") from exc
+            raise FrameError(f"{where}: not a valid DBC file: {exc}") from exc
         if not isinstance(database, cantools.database.can.Database):
-            raise FrameError(f"{path}: not a CAN database")
-        return cls(path, text, database)
+            raise FrameError(f"{where}: not a CAN database")
+        return cls(where, text, database)
 
     # --- encoding ---------------------------------------------------------------------------
 
