@@ -1,11 +1,12 @@
 """The CAN frame contract: encode and decode the four ballbeam frames, check their counters.
 
 The contract is defined once, in ``ballbeam.dbc`` beside this module (package data), and
-loaded with cantools by both processes. :meth:`FrameContract.load` reads each signal's position, sign, scale and range from
-the DBC and refuses a file that breaks the fixed parts of the contract (ids, lengths, the E2E
-header). Encoding and decoding then run on those precomputed layouts with plain integer
-arithmetic, because they run at 1 kHz in both processes: cantools' own strict encode plus its
-E2E helper (crccheck) costs ~13 µs per frame, this path ~2-3 µs. The tests check that the bytes
+loaded with cantools by both processes. :meth:`FrameContract.load` reads each signal's
+position, sign, scale and range from the DBC and refuses a file that breaks the fixed parts
+of the contract (ids, lengths, the E2E header). Encoding and decoding then run on those
+precomputed layouts with plain integer arithmetic, because they run at 1 kHz in both
+processes: cantools' own strict encode plus its E2E helper (crccheck) is several times
+slower (README, benchmarks). The tests check that the bytes
 are identical to cantools' ``Message.encode`` followed by ``apply_profile5_crc``.
 
 Every frame: AUTOSAR E2E profile 5 CRC-16 in bytes 0-1 (little-endian, data id = frame id),
