@@ -32,8 +32,9 @@ PACKAGES = ("ballbeam-hil", "numpy", "scipy", "python-can", "mcap", "pydantic", 
 
 
 def new_log_path(log_dir: str | Path, kind: str) -> Path:
-    """A unique, sortable file name: UTC time to the microsecond, then a random suffix."""
-    directory = Path(log_dir)
+    """A unique, sortable file name: UTC time to the microsecond, then a random suffix
+    (absolute, so the path a run prints opens from anywhere)."""
+    directory = Path(log_dir).absolute()
     try:
         directory.mkdir(parents=True, exist_ok=True)
     except OSError as error:
