@@ -438,14 +438,29 @@ def test_other_model_structures_are_refused() -> None:
         plan_time_optimal(LinearModel(A=A, B=MODEL.B, C=MODEL.C), PAPER_START)
 
 
-def test_direct_highs_path_gives_what_linprog_gives(
+def test_highspy_gives_what_linprog_gives(
     plan_margin: TimeOptimalPlan, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """The planner's shortcut to SciPy's HiGHS bindings must not change a plan: without it
-    (every LP through the public linprog) the paper plan comes out the same, bit for bit."""
+    """The planner hands its LPs to HiGHS through ``highspy``; the same model and options
+    through SciPy's public linprog must give the same plan, bit for bit."""
     import ballbeam.core.planning.time_optimal as time_optimal
 
-    monkeypatch.setattr(time_optimal, "_highs", None)
-    through_linprog = paper_plan(0.5)
-    assert through_linprog.n_steps == plan_margin.n_steps
-    assert np.array_equal(through_linprog.input_v, plan_margin.input_v)
+    calls = 0
+
+    def through_linprog(
+        c: np.ndarray, A_eq: Any, b_eq: np.ndarray, bounds: np.ndarray, options: dict[str, Any]
+    ) -> tuple[bool | None, np.ndarray]:
+        nonlocal calls
+        calls += 1
+        options = dict(options)
+        method = "highs-ipm" if options.pop("solver", None) == "ipm" else "highs"
+        res = linprog(c, A_eq=A_eq, b_eq=b_eq, bounds=bounds, method=method, options=options)
+        if res.status == 0:
+            return True, np.asarray(res.x)
+        return (False if res.status == 2 else None), np.zeros(0)
+
+    monkeypatch.setattr(time_optimal, "_highs_solve", through_linprog)
+    by_linprog = paper_plan(0.5)
+    assert calls > 0
+    assert by_linprog.n_steps == plan_margin.n_steps
+    assert np.array_equal(by_linprog.input_v, plan_margin.input_v)

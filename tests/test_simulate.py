@@ -36,7 +36,7 @@ def test_time_optimal_path_settles_within_2_1_s_with_all_nonlinearities_on() -> 
 def test_plan_json_prints_the_bang_bang_duration(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["plan", str(CONFIGS / "paths" / "bang_bang.toml"), "--json"]) == 0
     payload = json.loads(capsys.readouterr().out)
-    # Paper eq. 17: T = 1.4447 s; the constants of DESIGN.md give 2·sqrt(x0/(|γ|·θmax)).
+    # Paper eq. 17: T = 1.4447 s; the constants of docs/design.md §2 give 2·sqrt(x0/(|γ|·θmax)).
     gamma = 5 * 9.81 / (7 * 17)
     assert payload["duration_s"] == pytest.approx(2 * math.sqrt(0.195 / (gamma * math.radians(52))))
     assert f"{payload['duration_s']:.3f}" == "1.444"

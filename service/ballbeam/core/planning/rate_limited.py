@@ -1,4 +1,4 @@
-"""Servo-rate-limited minimum-time path (paper section 5, figure 6; DESIGN.md §3).
+"""Servo-rate-limited minimum-time path (paper section 5, figure 6; docs/design.md §3).
 
 The ball obeys ẍ = γθ, so the servo-angle bound |θ| ≤ θmax is a ball-acceleration bound
 |ẍ| ≤ A = |γ|·θmax and the servo-rate bound |θ̇| ≤ θ̇max is a ball-jerk bound

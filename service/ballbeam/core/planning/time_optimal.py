@@ -1,4 +1,4 @@
-"""Minimum-time path of the full linear model, motor lag included (DESIGN.md §2–3).
+"""Minimum-time path of the full linear model, motor lag included (docs/design.md §2–3).
 
 Problem: from ``x0 = (θ0, θ̇0, ẋ0, x0)`` reach rest at the origin as early as possible under
 ``ẋ = A x + B u``, ``|u| ≤ U`` and ``|θ(t)| ≤ θmax`` at all times; afterwards u = 0 keeps the
@@ -35,36 +35,32 @@ Method:
   not; a coarser one only guides the next with a shape and a root, so its search ends at the
   first infeasible count whose miss puts the root within a step (usually the first LP, the
   start being the coarser root), and the coarsest one starts where the same search on a grid
-  twice as coarse (half the variables) ends. The paper's start takes 7 LPs (32 ms: 3 small;
-  16, 4 ms: 1 each; 1 ms: 2), solved directly by HiGHS where SciPy ships its bindings
-  (``_solve_lp``). Its plan comes from the same LPs as when every grid confirmed its count,
-  so it is the same to the bit (the golden log's replay pins it).
+  twice as coarse (half the variables) ends. The paper's start takes 7 LPs (grid steps of
+  32 ms: 3 small; 16 and 4 ms: 1 each; 1 ms: 2), each solved by HiGHS through its public
+  Python package ``highspy`` with linprog's model and options
+  (``_solve_lp``; the tests check that linprog gives the same plan). Its plan comes from the
+  same LPs as when every grid confirmed its count, so it is the same to the bit (the golden
+  log's replay pins it).
 * Minimality of the windowed search is checked against the whole fine problem in the tests
   (paper's start and random starts, independent formulation) and on request at run time
-  (``verify_minimal``: the whole fine LP at N − 1, about 0.25 s for the paper's start).
+  (``verify_minimal``: the whole fine LP at N − 1).
 """
 
 from __future__ import annotations
 
 import math
-import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+import highspy
 import numpy as np
 import scipy.signal
 import scipy.sparse
-from scipy.optimize import OptimizeWarning, linprog
 
 from ballbeam.core.model import LinearModel
 from ballbeam.core.plans import PlanSamples
 from ballbeam.errors import ConfigError, PlanningError
-
-try:  # HiGHS's own Python bindings as SciPy ships them (private; SciPy ≥ 1.15), see _solve_lp
-    from scipy.optimize._highspy import _core as _highs
-except ImportError:  # older SciPy: linprog only
-    _highs = None
 
 __all__ = ["TimeOptimalPlan", "intersample_margin_rad", "plan_time_optimal"]
 
@@ -285,44 +281,47 @@ def _make_grid(
     return _Grid(p, step_s, x0, voltage_v, theta_max, theta_max - delta, interval)
 
 
-def _linprog(**kwargs: Any) -> Any:
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", OptimizeWarning)
-        return linprog(**kwargs)
-
-
-def _highs_direct(
-    c: np.ndarray, A_eq: scipy.sparse.csc_array, b_eq: np.ndarray, bounds: np.ndarray
+def _highs_solve(
+    c: np.ndarray,
+    A_eq: scipy.sparse.csc_array,
+    b_eq: np.ndarray,
+    bounds: np.ndarray,
+    options: dict[str, Any],
 ) -> tuple[bool | None, np.ndarray]:
-    """HiGHS through its own bindings, with linprog's model and options: (True, x) when optimal,
-    (False, _) when infeasible, (None, _) when it gives up."""
+    """One HiGHS run on min c·x, A_eq x = b_eq, bounds (n, 2), with linprog's model and
+    settings (column-wise matrix, dual simplex strategy, ``presolve`` a bool): (True, x) when
+    optimal, (False, _) when infeasible, (None, _) when HiGHS gives up."""
     n_col, n_row = c.size, b_eq.size
-    lp = _highs.HighsLp()
+    lp = highspy.HighsLp()
     lp.num_col_, lp.num_row_ = n_col, n_row
-    # (the bindings copy lists twice as fast as arrays, element by element either way)
-    lp.col_cost_ = c.tolist()
-    lp.col_lower_ = np.maximum(bounds[:, 0], -_highs.kHighsInf).tolist()
-    lp.col_upper_ = np.minimum(bounds[:, 1], _highs.kHighsInf).tolist()
-    lp.row_lower_ = lp.row_upper_ = b_eq.tolist()
+    lp.col_cost_ = c
+    lp.col_lower_ = np.maximum(bounds[:, 0], -highspy.kHighsInf)
+    lp.col_upper_ = np.minimum(bounds[:, 1], highspy.kHighsInf)
+    lp.row_lower_ = lp.row_upper_ = b_eq
     matrix = lp.a_matrix_
-    matrix.format_ = _highs.MatrixFormat.kColwise
+    matrix.format_ = highspy.MatrixFormat.kColwise
     matrix.num_col_, matrix.num_row_ = n_col, n_row
-    matrix.start_ = A_eq.indptr.tolist()
-    matrix.index_ = A_eq.indices.tolist()
-    matrix.value_ = A_eq.data.tolist()
-    options = _highs.HighsOptions()
-    options.output_flag = options.log_to_console = False
-    options.presolve = "on"  # as linprog sets it (HiGHS's own default is "choose")
-    for key, value in _HIGHS_OPTIONS.items():
-        setattr(options, key, value)
-    solver = _highs._Highs()
-    solver.passOptions(options)
+    matrix.start_ = A_eq.indptr
+    matrix.index_ = A_eq.indices
+    matrix.value_ = A_eq.data
+    solver = highspy.Highs()  # type: ignore[no-untyped-call]  # (its __init__ is unannotated)
+    solver.setOptionValue("output_flag", False)
+    solver.setOptionValue("log_to_console", False)
+    solver.setOptionValue("simplex_strategy", 1)  # dual simplex, as linprog sets it
+    for key, value in options.items():
+        if key == "presolve":  # linprog's bool; HiGHS's own default is "choose"
+            value = "on" if value else "off"
+        solver.setOptionValue(key, value)
     solver.passModel(lp)
     solver.run()
     status = solver.getModelStatus()
-    if status == _highs.HighsModelStatus.kOptimal:
+    if status == highspy.HighsModelStatus.kOptimal:
         return True, np.array(solver.getSolution().col_value)
-    return (False if status == _highs.HighsModelStatus.kInfeasible else None), np.zeros(0)
+    infeasible = status in (
+        highspy.HighsModelStatus.kInfeasible,
+        highspy.HighsModelStatus.kModelError,
+    )
+    return (False if infeasible else None), np.zeros(0)
 
 
 def _solve_lp(
@@ -333,31 +332,27 @@ def _solve_lp(
     method: str,
 ) -> np.ndarray | None:
     """argmin c·x subject to A_eq x = b_eq within the bounds (n, 2), or None if the LP is
-    infeasible or HiGHS gives up on every try.
+    infeasible or HiGHS gives up on every try. ``method`` is linprog's name for the solver:
+    "highs" (HiGHS chooses, dual simplex here) or "highs-ipm" (interior point).
 
-    The first dual-simplex try goes to HiGHS directly where SciPy ships its bindings: linprog's
-    checks and conversions take about 1.4 ms a call, more than most of these LPs take to solve,
-    and the answer is the same to the bit (same model, same options).
+    The LPs go to HiGHS directly (``highspy``) rather than through ``scipy.optimize.linprog``:
+    linprog's checks and conversions take longer than most of these small LPs take to solve.
+    The model and options are linprog's, so the answers are those linprog gives (the tests
+    compare the two).
     """
     # HiGHS now and then gives up ("model status unknown") on these near-degenerate LPs, most
     # often right at the minimal count; without presolve, or by interior point, it answers.
     tries: list[dict[str, Any]] = [{}, {"presolve": False}, {"solver": "ipm"}]
-    if _highs is not None and method == "highs":
-        try:
-            optimal, x = _highs_direct(c, A_eq, b_eq, bounds)
-        except (AttributeError, TypeError):  # a SciPy whose private bindings differ: linprog
-            pass
-        else:
-            if optimal is not None:
-                return x if optimal else None
-            tries = tries[1:]
     for extra in tries:
-        options = {**_HIGHS_OPTIONS, **extra}
-        chosen = "highs-ipm" if options.pop("solver", None) else method
-        res = _linprog(c=c, A_eq=A_eq, b_eq=b_eq, bounds=bounds, method=chosen, options=options)
-        if res.status in (0, 2):
-            break
-    return np.asarray(res.x) if res.status == 0 else None
+        options: dict[str, Any] = {"presolve": True, **_HIGHS_OPTIONS, **extra}
+        if method == "highs-ipm":
+            options["solver"] = "ipm"
+        elif method != "highs":
+            raise ValueError(f"unknown LP method {method!r}")
+        optimal, x = _highs_solve(c, A_eq, b_eq, bounds, options)
+        if optimal is not None:
+            return x if optimal else None
+    return None
 
 
 @dataclass(frozen=True)
@@ -814,8 +809,9 @@ def plan_time_optimal(
     Inputs stay within ±(``voltage_limit_v`` − ``voltage_margin_v``) (the paper's setting keeps
     0.5 V back for the tracker: ``plan.voltage_margin_v``), the servo angle within
     ±``theta_max_rad`` at all times. ``verify_minimal`` re-solves the whole fine problem at
-    N − 1 steps (about 0.25 s for the paper's start) and continues on it should that be
-    feasible; without it, minimality rests on the windowed search.
+    N − 1 steps (one LP over all the inputs, slower than the whole windowed search) and
+    continues on it should that be feasible; without it, minimality rests on the windowed
+    search.
 
     Raises PlanningError when the start is beyond the angle limit, moves too fast to be
     stopped before it, or needs longer than ``max_duration_s``; ConfigError for bad settings.
