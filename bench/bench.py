@@ -26,9 +26,9 @@ from typing import Any
 import numpy as np
 from floors import exchange_floor, machine_stalls
 
-from ballbeam.analysis import summarise
 from ballbeam.assembly import controller_design, make_plan, run_offline
 from ballbeam.config import load_config
+from ballbeam.evaluation.summary import summarise
 from ballbeam.logs.reader import RunLog, read_log
 from ballbeam.protocol.frames import SENSOR_ID
 from ballbeam.runtime.launcher import launch_run
@@ -296,7 +296,7 @@ def bench_replay(duration_s: float) -> dict[str, Any]:
         summarise(run_log)
         total_s = time.perf_counter() - started
         started = time.perf_counter()
-        from ballbeam.replay import verify
+        from ballbeam.evaluation.replay import verify
 
         verified = verify(run_log)
         verify_s = time.perf_counter() - started

@@ -12,9 +12,9 @@ import pytest
 
 from ballbeam.assembly import run_offline
 from ballbeam.config import load_config
+from ballbeam.evaluation.replay import verify
+from ballbeam.logs import topics
 from ballbeam.logs.reader import read_log
-from ballbeam.replay import verify
-from ballbeam.runtime import channels
 from ballbeam.runtime.bus import socketcan_available
 
 from .conftest import PAPER, ballbeam
@@ -55,7 +55,7 @@ def test_lockstep_run_matches_offline_and_records_every_channel(
     log_path = Path(str(summary["log_path"]))
     run_log = read_log(log_path)
     assert not run_log.truncated
-    for topic in channels.STRUCT_TOPICS:
+    for topic in topics.STRUCT_TOPICS:
         assert len(run_log.topics[topic]) > 0, topic
     assert {"config", "versions", "run", "summary"} <= set(run_log.metadata)
     assert {"ballbeam.dbc", "config.resolved.json", "config.toml"} <= set(run_log.attachments)

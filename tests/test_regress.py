@@ -9,7 +9,7 @@ from xml.etree import ElementTree
 
 import pytest
 
-from ballbeam.regress import evaluate
+from ballbeam.evaluation.regress import evaluate
 
 from .conftest import PAPER, ballbeam
 

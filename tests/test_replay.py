@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ballbeam import replay
-from ballbeam.analysis import summarise
+from ballbeam.evaluation import replay
+from ballbeam.evaluation.summary import summarise
 from ballbeam.logs import design_record
 from ballbeam.logs.reader import RunLog, read_log
 

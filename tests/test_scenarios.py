@@ -7,11 +7,11 @@ from pathlib import Path
 
 import pytest
 
-from ballbeam.regress import discover, run_scenario, table
+from ballbeam.evaluation.regress import discover, run_scenario, table
 
 from .conftest import CONFIGS
 
-SCENARIOS = discover(CONFIGS / "scenarios")
+SCENARIOS = discover([CONFIGS / "scenarios"])
 
 
 @pytest.mark.bus

@@ -1,7 +1,7 @@
-"""``python -m ballbeam_emulator CONFIG``: the same as ``ballbeam emulator CONFIG``."""
+"""``python -m ballbeam_emulator [CONFIG] [--set KEY=VALUE]``: the plant emulator process."""
 
 import sys
 
-from ballbeam.cli import main
+from ballbeam_emulator.main import main
 
-sys.exit(main(["emulator", *sys.argv[1:]]))
+sys.exit(main())

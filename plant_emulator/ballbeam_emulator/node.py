@@ -33,7 +33,7 @@ from ballbeam.protocol.frames import (
     next_counter,
 )
 from ballbeam.runtime.bus import recv_frame
-from ballbeam.runtime.signals import StopFlag
+from ballbeam.runtime.stop import StopFlag
 from ballbeam.runtime.ticker import Ticker
 
 log = logging.getLogger("ballbeam.emulator")

@@ -14,8 +14,13 @@ from typing import Any
 
 import numpy as np
 
-from ballbeam.config import Config, load_config, resolve_config_path
 from ballbeam.errors import BallbeamError
+from ballbeam.runtime.process import (
+    add_config_arguments,
+    config_from_arguments,
+    configure_logging,
+    resolve_config_argument,
+)
 
 EXIT_USAGE = 2
 
@@ -28,27 +33,6 @@ def _positive_int(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
     return value
-
-
-def _add_config_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "config",
-        nargs="?",
-        help="TOML config file, or a shipped config's name (`ballbeam configs` lists them; "
-        "default: the paper's set-up, as in paper.toml)",
-    )
-    parser.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="override a config key, e.g. --set plan.kind=rate_limited (repeatable)",
-    )
-
-
-def _config(args: argparse.Namespace) -> Config:
-    return load_config(args.config, args.overrides)
 
 
 def _json_ready(value: Any) -> Any:
@@ -81,7 +65,7 @@ def print_table(title: str, rows: dict[str, Any]) -> None:
 def command_plan(args: argparse.Namespace) -> int:
     from ballbeam.assembly import make_plan
 
-    config = _config(args)
+    config = config_from_arguments(args)
     plan = make_plan(config)
     summary: dict[str, Any] = {"kind": plan.kind, "duration_s": plan.duration_s}
     summary.update(getattr(plan, "summary", dict)())
@@ -94,9 +78,9 @@ def command_plan(args: argparse.Namespace) -> int:
 
 def command_simulate(args: argparse.Namespace) -> int:
     from ballbeam.assembly import run_offline
-    from ballbeam.plotting import plot_run
+    from ballbeam.evaluation.plots import plot_run
 
-    config = _config(args)
+    config = config_from_arguments(args)
     result = run_offline(config)
     metrics = result.metrics.as_dict()
     if args.plot:
@@ -127,19 +111,14 @@ def command_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _configure_logging() -> None:
-    import logging
-
-    logging.basicConfig(level=logging.INFO, format="%(name)s: %(levelname)s: %(message)s")
-
-
 def command_daemon(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from ballbeam.runtime.nodes import new_log_path, run_daemon
+    from ballbeam.runtime.daemon.node import run_daemon
+    from ballbeam.runtime.process import new_log_path
 
-    _configure_logging()
-    config = _config(args)
+    configure_logging()
+    config = config_from_arguments(args)
     log_path = Path(args.log) if args.log else new_log_path(config.run.log_dir, config.plan.kind)
     run_daemon(config, log_path, args.config)
     print(log_path)
@@ -147,15 +126,15 @@ def command_daemon(args: argparse.Namespace) -> int:
 
 
 def command_emulator(args: argparse.Namespace) -> int:
-    from ballbeam.runtime.nodes import run_emulator
+    from ballbeam_emulator.main import run_emulator
 
-    _configure_logging()
-    run_emulator(_config(args))
+    configure_logging()
+    run_emulator(config_from_arguments(args))
     return 0
 
 
 def command_run(args: argparse.Namespace) -> int:
-    from ballbeam.analysis import summarise
+    from ballbeam.evaluation.summary import summarise
     from ballbeam.logs.reader import read_log
     from ballbeam.runtime.launcher import launch_run
 
@@ -199,14 +178,14 @@ def _read_log_or_fail(path: str) -> Any:
 
 
 def command_replay(args: argparse.Namespace) -> int:
-    from ballbeam.analysis import limit_from_log, run_series, summarise
+    from ballbeam.evaluation.summary import limit_from_log, run_series, summarise
 
     run_log = _read_log_or_fail(args.log)
     summary = summarise(run_log)
     summary["log_path"] = args.log
     exit_code = 0
     if args.verify:
-        from ballbeam.replay import verify
+        from ballbeam.evaluation.replay import verify
 
         result = verify(run_log)
         summary["verify_cycles"] = result.cycles_checked
@@ -225,7 +204,7 @@ def command_replay(args: argparse.Namespace) -> int:
             )
             exit_code = 1
     if args.plot:
-        from ballbeam.plotting import plot_run
+        from ballbeam.evaluation.plots import plot_run
 
         series = run_series(run_log)
         reference = np.array(
@@ -268,7 +247,7 @@ def command_regress(args: argparse.Namespace) -> int:
 
     from tqdm import tqdm
 
-    from ballbeam import regress
+    from ballbeam.evaluation import regress
 
     paths = regress.discover(args.scenarios)
     with tqdm(total=len(paths), unit="scenario", file=sys.stderr, disable=args.json) as bar:
@@ -312,12 +291,12 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     plan = commands.add_parser("plan", help="plan the path and print its duration and summary")
-    _add_config_arguments(plan)
+    add_config_arguments(plan)
     plan.add_argument("--json", action="store_true", help="print one JSON object")
     plan.set_defaults(handler=command_plan)
 
     simulate = commands.add_parser("simulate", help="run the offline closed loop (no bus)")
-    _add_config_arguments(simulate)
+    add_config_arguments(simulate)
     simulate.add_argument("--json", action="store_true", help="print one JSON object")
     simulate.add_argument("--plot", metavar="PNG", help="write a paper-style figure")
     simulate.set_defaults(handler=command_simulate)
@@ -325,12 +304,12 @@ def build_parser() -> argparse.ArgumentParser:
     run = commands.add_parser(
         "run", help="run emulator and daemon as two processes over the bus, record, summarise"
     )
-    _add_config_arguments(run)
+    add_config_arguments(run)
     run.add_argument("--json", action="store_true", help="print one JSON object")
     run.set_defaults(handler=command_run)
 
     daemon = commands.add_parser("daemon", help="run the controller daemon alone")
-    _add_config_arguments(daemon)
+    add_config_arguments(daemon)
     daemon.add_argument("--log", metavar="MCAP", help="log file (default: a new one in logs/)")
     daemon.set_defaults(handler=command_daemon)
 
@@ -376,7 +355,7 @@ def build_parser() -> argparse.ArgumentParser:
     configs.set_defaults(handler=command_configs)
 
     emulator = commands.add_parser("emulator", help="run the plant emulator alone")
-    _add_config_arguments(emulator)
+    add_config_arguments(emulator)
     emulator.set_defaults(handler=command_emulator)
     return parser
 
@@ -386,9 +365,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     handler: Callable[[argparse.Namespace], int] = args.handler
     try:
-        if getattr(args, "config", None):
-            # Children of `run` and the log get the file itself, wherever the name led.
-            args.config = str(resolve_config_path(args.config).resolve())
+        resolve_config_argument(args)
         return handler(args)
     except BallbeamError as error:
         print(f"ballbeam: error: {error}", file=sys.stderr)

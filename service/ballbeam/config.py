@@ -35,7 +35,7 @@ class _Section(BaseModel):
 
 
 class ModelSection(_Section):
-    """The controller's design model: the paper's constants (DESIGN.md §2)."""
+    """The controller's design model: the paper's constants (docs/design.md §2)."""
 
     torque_constant_nm_per_a: float = Field(0.00767, gt=0)
     gear_ratio: float = Field(70.0, gt=0)

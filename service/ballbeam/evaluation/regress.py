@@ -80,7 +80,7 @@ def evaluate(expect: dict[str, dict[str, float]], summary: dict[str, Any]) -> tu
 
 
 def run_scenario(path: Path, overrides: Iterable[str] = ()) -> ScenarioResult:
-    from ballbeam.analysis import summarise
+    from ballbeam.evaluation.summary import summarise
     from ballbeam.logs.reader import read_log
     from ballbeam.runtime.launcher import launch_run
 
@@ -188,7 +188,7 @@ def as_json(results: list[ScenarioResult]) -> dict[str, Any]:
 def write_junit(results: list[ScenarioResult], path: Path) -> None:
     suite = ElementTree.Element(
         "testsuite",
-        name="ballbeam.regress",
+        name="ballbeam.evaluation.regress",
         tests=str(len(results)),
         failures=str(sum(not result.passed for result in results)),
     )

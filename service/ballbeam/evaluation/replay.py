@@ -16,12 +16,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ballbeam.analysis import check_layouts
 from ballbeam.assembly import controller_design
 from ballbeam.config import Config, config_from_mapping
 from ballbeam.core.control import ControllerDesign, ControllerState, coast_cycles, control_cycle
 from ballbeam.core.plant import SensorReading
 from ballbeam.errors import BallbeamError, LogFormatError
+from ballbeam.evaluation.summary import check_layouts
 from ballbeam.logs import design_record
 from ballbeam.logs.reader import RunLog
 

@@ -15,7 +15,7 @@ import numpy as np
 from ballbeam.core.metrics import compute_metrics
 from ballbeam.errors import LogFormatError
 from ballbeam.logs.reader import RunLog
-from ballbeam.runtime.channels import STRUCT_TOPICS
+from ballbeam.logs.topics import STRUCT_TOPICS
 
 REQUIRED_TOPICS = ("/command", "/reference", "/truth", "/timing")
 SATURATION_TOLERANCE_V = 1e-6

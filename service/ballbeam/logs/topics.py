@@ -1,68 +1,117 @@
-"""The recorded channels of a run: topic names and fixed layouts (self-describing in the file).
+"""The recorded topics of a run: names, typed records and their fixed layouts.
 
-High-rate channels are fixed-size CDR structs (ros2msg schemas) so Foxglove plots them with no
-plugin and the reader decodes a whole channel at once; rare events are JSON.
+Each high-rate topic has one record type, a NamedTuple whose fields carry their ROS 2 type
+(``Annotated[float, "float64"]``); the topic's schema is derived from it, so a value, its
+fields and the layout in the file cannot drift apart. High-rate topics are fixed-size CDR
+structs (ros2msg schemas), so Foxglove plots them with no plugin and the reader decodes a whole
+channel at once; rare events are JSON.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Annotated, Any, Generic, NamedTuple, TypeVar, get_type_hints
+
 from ballbeam.logs.schema import StructSchema
 
-CAN_FRAME = StructSchema(
-    "ballbeam/CanFrame",
-    (
-        ("bus_time_s", "float64"),
-        ("arbitration_id", "uint32"),
-        ("dlc", "uint8"),
-        ("data", "uint8[8]"),
-    ),
-)
-SENSOR = StructSchema(
-    "ballbeam/Sensor",
-    (
-        ("cycle", "int64"),
-        ("fresh", "uint8"),
-        ("counter", "uint8"),
-        ("status", "uint8"),
-        ("angle_counts", "int32"),
-        ("position_counts", "int32"),
-        ("theta_rad", "float64"),
-        ("position_m", "float64"),
-    ),
-)
-COMMAND = StructSchema(
-    "ballbeam/Command",
-    (
-        ("cycle", "int64"),
-        ("voltage_v", "float64"),
-        ("requested_v", "float64"),
-        ("enable", "uint8"),
-        ("counter", "uint8"),
-        ("sensor_counter", "uint8"),
-    ),
-)
-STATE_FIELDS = (
-    ("theta_rad", "float64"),
-    ("theta_rate_rad_s", "float64"),
-    ("ball_velocity_m_s", "float64"),
-    ("ball_position_m", "float64"),
-)
-ESTIMATE = StructSchema("ballbeam/Estimate", (("cycle", "int64"), *STATE_FIELDS))
-REFERENCE = StructSchema(
-    "ballbeam/Reference", (("cycle", "int64"), *STATE_FIELDS, ("input_v", "float64"))
-)
-TRUTH = StructSchema("ballbeam/PlantTruth", (("counter", "uint8"), *STATE_FIELDS))
-TIMING = StructSchema(
-    "ballbeam/CycleTiming",
-    (
-        ("cycle", "int64"),
-        ("deadline_ns", "int64"),
-        ("start_ns", "int64"),
-        ("end_ns", "int64"),
-        ("lateness_ns", "int64"),
-        ("skipped", "int64"),
-    ),
-)
+Int64 = Annotated[int, "int64"]
+UInt8 = Annotated[int, "uint8"]
+Float64 = Annotated[float, "float64"]
+
+
+class CanFrameRecord(NamedTuple):
+    bus_time_s: Float64
+    arbitration_id: Annotated[int, "uint32"]
+    dlc: UInt8
+    data: Annotated[bytes, "uint8[8]"]
+
+
+class SensorRecord(NamedTuple):
+    cycle: Int64
+    fresh: UInt8
+    counter: UInt8
+    status: UInt8
+    angle_counts: Annotated[int, "int32"]
+    position_counts: Annotated[int, "int32"]
+    theta_rad: Float64
+    position_m: Float64
+
+
+class CommandRecord(NamedTuple):
+    cycle: Int64
+    voltage_v: Float64
+    requested_v: Float64
+    enable: UInt8
+    counter: UInt8
+    sensor_counter: UInt8
+
+
+class EstimateRecord(NamedTuple):
+    cycle: Int64
+    theta_rad: Float64
+    theta_rate_rad_s: Float64
+    ball_velocity_m_s: Float64
+    ball_position_m: Float64
+
+
+class ReferenceRecord(NamedTuple):
+    cycle: Int64
+    theta_rad: Float64
+    theta_rate_rad_s: Float64
+    ball_velocity_m_s: Float64
+    ball_position_m: Float64
+    input_v: Float64
+
+
+class TruthRecord(NamedTuple):
+    counter: UInt8
+    theta_rad: Float64
+    theta_rate_rad_s: Float64
+    ball_velocity_m_s: Float64
+    ball_position_m: Float64
+
+
+class TimingRecord(NamedTuple):
+    cycle: Int64
+    deadline_ns: Int64
+    start_ns: Int64
+    end_ns: Int64
+    lateness_ns: Int64
+    skipped: Int64
+
+
+R = TypeVar("R", bound=tuple[Any, ...])
+
+
+def schema_of(name: str, record_type: type[tuple[Any, ...]]) -> StructSchema:
+    """The fixed layout of a record type: its fields in order, with their ROS 2 types."""
+    hints = get_type_hints(record_type, include_extras=True)
+    fields = tuple((field, hints[field].__metadata__[0]) for field in hints)
+    return StructSchema(name, fields)
+
+
+@dataclass(frozen=True)
+class StructTopic(Generic[R]):
+    """A fixed-layout topic and the record type written to it."""
+
+    name: str
+    record_type: type[R]
+    schema: StructSchema
+
+
+def _topic(name: str, schema_name: str, record_type: type[R]) -> StructTopic[R]:
+    return StructTopic(name, record_type, schema_of(schema_name, record_type))
+
+
+CAN_RX = _topic("/can/rx", "ballbeam/CanFrame", CanFrameRecord)
+CAN_TX = _topic("/can/tx", "ballbeam/CanFrame", CanFrameRecord)
+SENSOR = _topic("/sensor", "ballbeam/Sensor", SensorRecord)
+COMMAND = _topic("/command", "ballbeam/Command", CommandRecord)
+ESTIMATE = _topic("/estimate", "ballbeam/Estimate", EstimateRecord)
+REFERENCE = _topic("/reference", "ballbeam/Reference", ReferenceRecord)
+TRUTH = _topic("/truth", "ballbeam/PlantTruth", TruthRecord)
+TIMING = _topic("/timing", "ballbeam/CycleTiming", TimingRecord)
+
 EVENT_SCHEMA = {
     "type": "object",
     "properties": {
@@ -72,15 +121,11 @@ EVENT_SCHEMA = {
     },
     "required": ["cycle", "kind", "detail"],
 }
+FAULTS = "/faults"
+EVENTS = "/events"
 
-STRUCT_TOPICS = {
-    "/can/rx": CAN_FRAME,
-    "/can/tx": CAN_FRAME,
-    "/sensor": SENSOR,
-    "/command": COMMAND,
-    "/estimate": ESTIMATE,
-    "/reference": REFERENCE,
-    "/truth": TRUTH,
-    "/timing": TIMING,
+STRUCT_TOPICS: dict[str, StructSchema] = {
+    topic.name: topic.schema
+    for topic in (CAN_RX, CAN_TX, SENSOR, COMMAND, ESTIMATE, REFERENCE, TRUTH, TIMING)
 }
-JSON_TOPICS = ("/faults", "/events")
+JSON_TOPICS = (FAULTS, EVENTS)

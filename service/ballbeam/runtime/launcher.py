@@ -18,7 +18,7 @@ from pathlib import Path
 from ballbeam.config import Config, load_config
 from ballbeam.errors import BallbeamError
 from ballbeam.runtime.bus import check_stays_on_host, free_udp_port, isolated_group
-from ballbeam.runtime.nodes import new_log_path
+from ballbeam.runtime.process import new_log_path
 
 STOP_GRACE_S = 5.0
 STARTUP_ALLOWANCE_S = 30.0
@@ -67,19 +67,19 @@ def launch_run(
         child_overrides += [f"bus.channel='{group}'", f"bus.port={free_udp_port()}"]
         config = load_config(config_path, child_overrides)
     log_path = new_log_path(config.run.log_dir, config.plan.kind)
-    base = [sys.executable, "-m", "ballbeam"]
+    base = [sys.executable, "-m"]
     config_args = ([config_path] if config_path else []) + [
         argument for override in child_overrides for argument in ("--set", override)
     ]
     started = time.monotonic()
     emulator = subprocess.Popen(
-        [*base, "emulator", *config_args],
+        [*base, "ballbeam_emulator", *config_args],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
         text=True,
     )
     daemon = subprocess.Popen(
-        [*base, "daemon", *config_args, "--log", str(log_path)],
+        [*base, "ballbeam", "daemon", *config_args, "--log", str(log_path)],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
         text=True,

@@ -1,8 +1,8 @@
 """The controller daemon: a fixed-rate loop (or lock-step) around the pure control law.
 
-Each cycle: latest valid sensor frame → observer → tracker → clamp to ±V → command frame.
-Everything it hears and does is recorded. It never dies on a bad frame: frames are counted
-and recorded as rejected; losing the plant commands 0 V and records a fault.
+Each cycle: the latest valid sample (sensor intake) → control law (observer → tracker → guard)
+→ command out; everything heard and done is recorded. It never dies on a bad frame (the
+intake counts and records it); losing the plant commands 0 V and records a fault.
 """
 
 from __future__ import annotations
@@ -26,28 +26,28 @@ from ballbeam.core.control import (
 )
 from ballbeam.core.plant import SensorReading
 from ballbeam.errors import BallbeamError
-from ballbeam.logs.recorder import Recorder
-from ballbeam.protocol.frames import (
-    SENSOR_ID,
-    VOLTAGE_COMMAND_ID,
-    CounterCheck,
-    FrameContract,
-    FrameRejectedError,
-    SensorFrame,
-    TruthAngle,
-    TruthBall,
-    next_counter,
+from ballbeam.logs.recording import RunRecording
+from ballbeam.logs.topics import (
+    ESTIMATE,
+    REFERENCE,
+    SENSOR,
+    TIMING,
+    EstimateRecord,
+    ReferenceRecord,
+    SensorRecord,
+    TimingRecord,
 )
-from ballbeam.runtime import channels
+from ballbeam.protocol.frames import SENSOR_ID, CounterCheck, FrameContract
 from ballbeam.runtime.bus import recv_frame
-from ballbeam.runtime.signals import StopFlag
+from ballbeam.runtime.daemon.command_out import CommandOut
+from ballbeam.runtime.daemon.intake import SensorIntake
+from ballbeam.runtime.stop import StopFlag
 from ballbeam.runtime.ticker import Ticker
 
 log = logging.getLogger("ballbeam.daemon")
 
 PHASE_PROBE_FRAMES = 20
 PHASE_PROBE_S = 0.05
-MAX_RECORDED_REJECTIONS = 1000  # per reason: beyond this only the count grows (no log floods)
 
 
 class PlantLostError(BallbeamError, TimeoutError):
@@ -87,249 +87,160 @@ class ControllerDaemon:
         design: ControllerDesign,
         bus: can.BusABC,
         contract: FrameContract,
-        recorder: Recorder,
+        recording: RunRecording,
         stop: StopFlag,
     ) -> None:
         self.config = config
         self.design = design
         self.bus = bus
-        self.contract = contract
-        self.recorder = recorder
+        self.recording = recording
         self.stop = stop
+        self.intake = SensorIntake(contract, recording)
+        self.commands = CommandOut(bus, contract, recording)
         self.period_ns = config.controller.period_ns
         self.n_cycles = round(config.run.duration_s * config.controller.rate_hz)
         self.state = ControllerState()
-        self.sensor_check = CounterCheck()
-        self.stats = DaemonStats()
-        self.command_counter = 0
-        self.latest_sensor: SensorFrame | None = None
-        self.fresh = False
+        self._stats = DaemonStats()
         self.cycles_since_sensor = 0
         self.in_fault = False
         self.last_output: CycleOutput | None = None
-        self.last_command: bytes | None = None
-        self.truth_angle: TruthAngle | None = None
-        self.last_sample_log: tuple[int, int] | None = None  # (counter, log time) of the
-        # latest accepted sensor frame: its truth frames are logged at that time
         self.wall_origin_ns = time.time_ns()
         self.mono_origin_ns = time.monotonic_ns()
+        self.log_time_ns = self.wall_origin_ns
         self.theta_limit_rad = config.limits.theta_rad
         self.outside_limit = False
-        self.handles = {
-            topic: recorder.add_struct_channel(topic, schema)
-            for topic, schema in channels.STRUCT_TOPICS.items()
-        }
-        self.handles.update(
-            {
-                topic: recorder.add_json_channel(topic, "ballbeam/Event", channels.EVENT_SCHEMA)
-                for topic in channels.JSON_TOPICS
-            }
-        )
-        self.log_time_ns = self.wall_origin_ns
 
-    # -- recording helpers --------------------------------------------------------------------
-    def _wall_ns(self) -> int:
-        return self.wall_origin_ns + time.monotonic_ns() - self.mono_origin_ns
+    @property
+    def stats(self) -> DaemonStats:
+        """The run's counts so far (the intake's and the command side's included)."""
+        self._stats.own_frames = self.intake.own_frames
+        self._stats.rejected = self.intake.rejected
+        self._stats.command_resends = self.commands.resends
+        return self._stats
 
-    def _event(self, topic: str, kind: str, detail: str) -> None:
-        self.recorder.record(
-            self.handles[topic],
-            self.log_time_ns,
-            {"cycle": self.state.cycle, "kind": kind, "detail": detail},
-        )
-
-    def _record_frame(self, topic: str, message: can.Message) -> None:
-        data = bytes(message.data).ljust(8, b"\0")[:8]
-        self.recorder.record(
-            self.handles[topic],
-            self.log_time_ns,
-            (message.timestamp, message.arbitration_id, message.dlc, data),
-        )
-
-    def _reject(self, reason: str, detail: str) -> None:
-        self.stats.rejected[reason] += 1
-        if self.stats.rejected[reason] <= MAX_RECORDED_REJECTIONS:
-            self._event("/faults", f"rejected_{reason}", detail)
+    @property
+    def sensor_check(self) -> CounterCheck:
+        return self.intake.sensor_check
 
     # -- frames -------------------------------------------------------------------------------
     def _recv(self, timeout_s: float, poll_s: float = 0.0) -> can.Message | None:
         """The next message within ``timeout_s``; datagrams that are no frame are rejected."""
         return recv_frame(
-            self.bus, timeout_s, lambda detail: self._reject("malformed", detail), poll_s
+            self.bus,
+            timeout_s,
+            lambda detail: self.intake.reject(
+                "malformed", detail, self.log_time_ns, self.state.cycle
+            ),
+            poll_s,
         )
 
     def _handle(self, message: can.Message) -> None:
-        # The contract is on standard-id data frames: an extended id that happens to have
-        # the same number, a remote frame or an error frame is someone else's.
-        foreign = message.is_extended_id or message.is_remote_frame or message.is_error_frame
-        if message.arbitration_id == VOLTAGE_COMMAND_ID and not foreign:
-            self.stats.own_frames += 1  # our own command looped back by the bus
-            return
-        self._record_frame("/can/rx", message)
-        if foreign:
-            kind = ("extended-id" if message.is_extended_id
-                    else "remote" if message.is_remote_frame else "error")
-            self._reject("foreign", f"{kind} frame 0x{message.arbitration_id:X}")
-            return
-        try:
-            frame = self.contract.decode(message.arbitration_id, bytes(message.data))
-        except FrameRejectedError as error:
-            self._reject(error.reason, str(error))
-            return
-        if isinstance(frame, SensorFrame):
-            verdict = self.sensor_check.classify(frame.counter)
-            if verdict == "ok":
-                self.latest_sensor = frame
-                self.fresh = True
-                self.last_sample_log = (frame.counter, self.log_time_ns)
-            elif verdict == "repeated":
-                self._on_repeated_sensor(frame)
-            else:
-                self._reject("stale", f"sensor counter {frame.counter} is older than the last")
-        elif isinstance(frame, TruthAngle):
-            self.truth_angle = frame
-        elif isinstance(frame, TruthBall):
-            angle = self.truth_angle
-            if angle is not None and angle.counter == frame.counter:
-                # Truth follows its sensor frame: log it at the time of that sample (now, if
-                # that sample's sensor frame never came: counters wrap, so no older match).
-                sample = self.last_sample_log
-                at_ns = sample[1] if sample and sample[0] == frame.counter else self.log_time_ns
-                self.recorder.record(
-                    self.handles["/truth"],
-                    at_ns,
-                    (frame.counter, angle.theta_rad, angle.theta_rate_rad_s,
-                     frame.velocity_m_s, frame.position_m),
-                )
-                self.truth_angle = None
-        else:
-            self._reject("direction", f"unexpected {type(frame).__name__} frame")
+        verdict = self.intake.handle(message, self.log_time_ns, self.state.cycle)
+        if verdict == "repeated" and self.config.run.mode == "lockstep":
+            # The plant resent a sample because our answer was lost: answer again without
+            # advancing the controller (so determinism survives frame loss).
+            self.commands.resend_last(self.log_time_ns, self.state.cycle)
 
-    def _on_repeated_sensor(self, frame: SensorFrame) -> None:
-        """Lock-step: the plant resent a sample because our answer was lost; answer again
-        without advancing the controller (so determinism survives frame loss)."""
-        if self.config.run.mode == "lockstep" and self.last_command is not None:
-            self._send_command_bytes(self.last_command)
-            self.stats.command_resends += 1
+    def _event(self, kind: str, detail: str) -> None:
+        self.recording.event(self.log_time_ns, self.state.cycle, kind, detail)
 
-    # -- commands -----------------------------------------------------------------------------
-    def _send_command_bytes(self, data: bytes) -> None:
-        message = can.Message(arbitration_id=VOLTAGE_COMMAND_ID, data=data, is_extended_id=False)
-        try:
-            self.bus.send(message)
-        except can.CanError as error:
-            self._event("/faults", "send_failed", str(error))
-            return
-        message.timestamp = time.time()  # the clock the kernel stamps received frames with
-        self._record_frame("/can/tx", message)
-
-    def _command(self, cycle: int, voltage_v: float, requested_v: float, enable: bool) -> None:
-        sensor_counter = self.latest_sensor.counter if self.latest_sensor is not None else 0
-        data = self.contract.encode_voltage_command(
-            self.command_counter, voltage_v, enable, sensor_counter
-        )
-        self.last_command = data
-        self._send_command_bytes(data)
-        self.recorder.record(
-            self.handles["/command"],
-            self.log_time_ns,
-            (cycle, voltage_v, requested_v, int(enable), self.command_counter,
-             sensor_counter),
-        )
-        self.command_counter = next_counter(self.command_counter)
+    def _fault(self, kind: str, detail: str) -> None:
+        self.recording.fault(self.log_time_ns, self.state.cycle, kind, detail)
 
     # -- one cycle ----------------------------------------------------------------------------
     def _cycle(self) -> None:
-        if self.recorder.error is not None and not self.stop.is_set():
+        recorder_error = self.recording.recorder.error
+        if recorder_error is not None and not self.stop.is_set():
             # No run goes on unrecorded: this cycle still commands, then the loop stops at 0 V.
-            log.error("recording failed (%s): stopping the run", self.recorder.error)
-            self.stats.end_reason = "recorder_failed"
+            log.error("recording failed (%s): stopping the run", recorder_error)
+            self._stats.end_reason = "recorder_failed"
             self.stop.set("recorder_failed")
         cycle = self.state.cycle
-        reading: SensorReading | None = None
-        sensor = self.latest_sensor
-        if self.fresh and sensor is not None:
-            reading = SensorReading(sensor.angle_counts, sensor.position_counts)
-            self.cycles_since_sensor = 0
-        else:
+        sample = self.intake.take()
+        reading = None
+        if sample is None:
             self.cycles_since_sensor += 1
-        self.fresh = False
+        else:
+            reading = SensorReading(sample.angle_counts, sample.position_counts)
+            self.cycles_since_sensor = 0
         timeout = self.config.controller.sensor_timeout_periods
         if self.state.prediction is not None and self.cycles_since_sensor >= timeout:
             self._fault_cycle()
             return
         if self.in_fault:
             self.in_fault = False
-            self._event("/events", "sensor_frames_resumed", f"after {timeout}+ silent periods")
+            self._event("sensor_frames_resumed", f"after {timeout}+ silent periods")
         self._record_sensor(cycle, reading)
         self.state, output = control_cycle(self.design, self.state, reading)
         self.last_output = output
-        self.stats.cycles += 1
+        self._stats.cycles += 1
         if reading is None:
-            self.stats.coasted_cycles += 1
+            self._stats.coasted_cycles += 1
         else:
-            self.stats.measured_cycles += 1
+            self._stats.measured_cycles += 1
         self._command(cycle, output.voltage_v, output.requested_v, enable=True)
-        estimate = output.estimate
-        self.recorder.record(self.handles["/estimate"], self.log_time_ns,
-                             (cycle, *estimate))
+        at_ns = self.log_time_ns
+        self.recording.write(ESTIMATE, at_ns, EstimateRecord(cycle, *output.estimate))
         reference, reference_input_v = self.design.reference(cycle)
-        self.recorder.record(self.handles["/reference"], self.log_time_ns,
-                             (cycle, *reference, reference_input_v))
-        self._watch_theta(float(estimate[0]))
+        self.recording.write(
+            REFERENCE, at_ns, ReferenceRecord(cycle, *reference, reference_input_v)
+        )
+        self._watch_theta(output.estimate[0])
+
+    def _command(self, cycle: int, voltage_v: float, requested_v: float, enable: bool) -> None:
+        latest = self.intake.latest
+        sensor_counter = latest.counter if latest is not None else 0
+        self.commands.send(self.log_time_ns, cycle, voltage_v, requested_v, enable,
+                           sensor_counter)
 
     def _record_sensor(self, cycle: int, reading: SensorReading | None) -> None:
-        sensor = self.latest_sensor
-        if reading is None or sensor is None:
-            self.recorder.record(self.handles["/sensor"], self.log_time_ns,
-                                 (cycle, 0, 0, 0, 0, 0, math.nan, math.nan))
-            return
-        measurement = self.design.measurement(reading)
-        self.recorder.record(
-            self.handles["/sensor"],
-            self.log_time_ns,
-            (cycle, 1, sensor.counter, sensor.status, reading.angle_counts,
-             reading.position_counts,
-             measurement[0] / self.config.model.angle_sensor_gain,
-             measurement[1] / self.config.model.position_sensor_gain),
-        )
+        sample = self.intake.latest
+        if reading is None or sample is None:
+            record = SensorRecord(cycle, 0, 0, 0, 0, 0, math.nan, math.nan)
+        else:
+            measurement = self.design.measurement(reading)
+            record = SensorRecord(
+                cycle, 1, sample.counter, sample.status, reading.angle_counts,
+                reading.position_counts,
+                measurement[0] / self.config.model.angle_sensor_gain,
+                measurement[1] / self.config.model.position_sensor_gain,
+            )
+        self.recording.write(SENSOR, self.log_time_ns, record)
 
     def _fault_cycle(self) -> None:
         """No sensor frame for too long: 0 V, disabled, coast the observer on 0 V."""
         if not self.in_fault:
             self.in_fault = True
-            self._event("/faults", "sensor_timeout",
+            self._fault("sensor_timeout",
                         f"no valid sensor frame for {self.cycles_since_sensor} periods; 0 V")
             log.error("sensor frames lost for %d periods: commanding 0 V",
                       self.cycles_since_sensor)
         silent_s = self.cycles_since_sensor * self.period_ns * 1e-9
         if silent_s >= self.config.controller.plant_lost_s and not self.stop.is_set():
-            self._event("/faults", "plant_lost", f"no sensor frame for {silent_s:.3f} s")
-            self.stats.end_reason = "plant_lost"
+            self._fault("plant_lost", f"no sensor frame for {silent_s:.3f} s")
+            self._stats.end_reason = "plant_lost"
             self.stop.set("plant_lost")
         cycle = self.state.cycle
         self._record_sensor(cycle, None)
         self._command(cycle, 0.0, 0.0, enable=False)
         self.state = coast_cycles(self.design, self.state, 0.0, 1)
-        self.stats.cycles += 1
-        self.stats.fault_cycles += 1
+        self._stats.cycles += 1
+        self._stats.fault_cycles += 1
 
     def _watch_theta(self, theta_estimate_rad: float) -> None:
         outside = abs(theta_estimate_rad) > self.theta_limit_rad + 1e-9
         if outside and not self.outside_limit:
-            self.stats.theta_violation_events += 1
-            self._event("/events", "theta_violation",
+            self._stats.theta_violation_events += 1
+            self._event("theta_violation",
                         f"estimated |θ| = {math.degrees(abs(theta_estimate_rad)):.2f}° > "
                         f"{self.config.limits.theta_deg}°")
         self.outside_limit = outside
 
     def _record_timing(self, deadline_ns: int, start_ns: int, skipped: int) -> None:
         end_ns = time.monotonic_ns()
-        self.recorder.record(
-            self.handles["/timing"],
-            self.log_time_ns,
-            (self.state.cycle - 1, deadline_ns, start_ns, end_ns, start_ns - deadline_ns, skipped),
-        )
+        self.recording.write(TIMING, self.log_time_ns, TimingRecord(
+            self.state.cycle - 1, deadline_ns, start_ns, end_ns, start_ns - deadline_ns, skipped
+        ))
 
     # -- loops --------------------------------------------------------------------------------
     def _wait_for_plant(self) -> int:
@@ -350,12 +261,12 @@ class ControllerDaemon:
             arrival_ns = time.monotonic_ns()
             self.log_time_ns = self._wall_ns()
             self._handle(message)
-            if self.fresh:
+            if self.intake.fresh:
                 return arrival_ns
         return time.monotonic_ns()
 
     def run(self) -> DaemonStats:
-        self._event("/events", "daemon_start", f"mode={self.config.run.mode}")
+        self._event("daemon_start", f"mode={self.config.run.mode}")
         try:
             arrival_ns = self._wait_for_plant()
             if not self.stop.is_set():
@@ -364,7 +275,7 @@ class ControllerDaemon:
                 else:
                     self._run_realtime(arrival_ns)
         except PlantLostError:
-            self.stats.end_reason = "plant_lost"
+            self._stats.end_reason = "plant_lost"
             raise
         finally:
             self._shutdown()
@@ -375,7 +286,7 @@ class ControllerDaemon:
         poll_s = self.config.run.lockstep_poll_us * 1e-6
         self.wall_origin_ns = self.log_time_ns
         while not self.stop.is_set() and self.state.cycle < self.n_cycles:
-            if self.fresh:
+            if self.intake.fresh:
                 start_ns = time.monotonic_ns()
                 self.log_time_ns = self.wall_origin_ns + self.state.cycle * self.period_ns
                 self._cycle()
@@ -385,8 +296,8 @@ class ControllerDaemon:
             # Whatever arrives now belongs to the sample of the coming cycle.
             self.log_time_ns = self.wall_origin_ns + self.state.cycle * self.period_ns
             if message is None:
-                self._event("/faults", "plant_silent", f"no frame for {silence_s} s")
-                self.stats.end_reason = "plant_silent"
+                self._fault("plant_silent", f"no frame for {silence_s} s")
+                self._stats.end_reason = "plant_silent"
                 log.error("plant silent for %.1f s in lock-step: stopping", silence_s)
                 return
             self._handle(message)
@@ -403,7 +314,7 @@ class ControllerDaemon:
                 break
             self.log_time_ns = self._wall_ns()
             self._handle(message)
-            if message.arbitration_id == SENSOR_ID and self.fresh:
+            if message.arbitration_id == SENSOR_ID and self.intake.fresh:
                 age_ns = time.time_ns() - int(message.timestamp * 1e9)
                 phases.append((time.monotonic_ns() - age_ns) % self.period_ns)
         angles = np.array(phases) * (2 * math.pi / self.period_ns)
@@ -424,8 +335,8 @@ class ControllerDaemon:
             tick = ticker.wait()
             self.log_time_ns = self.wall_origin_ns + tick.cycle * self.period_ns
             if tick.skipped:
-                self.stats.overruns += 1
-                self.stats.skipped_periods += tick.skipped
+                self._stats.overruns += 1
+                self._stats.skipped_periods += tick.skipped
                 self._coast_skipped(tick.skipped)
             # Read what has arrived, for half a period at most: a flood must not hold the loop
             # (the rest is read next cycle, or dropped by the kernel if its buffer overflows).
@@ -436,6 +347,9 @@ class ControllerDaemon:
                     break
             self._cycle()
             self._record_timing(tick.deadline_ns, tick.start_ns, tick.skipped)
+
+    def _wall_ns(self) -> int:
+        return self.wall_origin_ns + time.monotonic_ns() - self.mono_origin_ns
 
     def _wall_ns_at(self, monotonic_ns: int) -> int:
         return self.wall_origin_ns + monotonic_ns - self.mono_origin_ns
@@ -449,16 +363,12 @@ class ControllerDaemon:
         if self.in_fault:
             held_v = 0.0
         self.state = coast_cycles(self.design, self.state, held_v, count)
-        self._event("/events", "overrun", f"skipped {count} period(s), coasting on the model")
+        self._event("overrun", f"skipped {count} period(s), coasting on the model")
 
     def _shutdown(self) -> None:
         """0 V, disabled — sent a few times since a frame can be lost — then the stop event."""
-        for _ in range(3):
-            self._send_command_bytes(
-                self.contract.encode_voltage_command(self.command_counter, 0.0, False, 0)
-            )
-            self.command_counter = next_counter(self.command_counter)
-        reason = self.stop.signal_name if self.stop.signal_name else self.stats.end_reason
+        self.commands.shutdown(self.log_time_ns, self.state.cycle)
+        reason = self.stop.signal_name if self.stop.signal_name else self._stats.end_reason
         if self.stop.signal_name in ("SIGINT", "SIGTERM"):
-            self.stats.end_reason = self.stop.signal_name
-        self._event("/events", "daemon_stop", f"reason={reason}; 0 V commanded")
+            self._stats.end_reason = self.stop.signal_name
+        self._event("daemon_stop", f"reason={reason}; 0 V commanded")

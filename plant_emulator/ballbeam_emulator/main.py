@@ -1,0 +1,65 @@
+"""The plant emulator's process: ``python -m ballbeam_emulator [CONFIG] [--set KEY=VALUE]``
+(also ``ballbeam emulator``). It runs until SIGINT/SIGTERM (``ballbeam run`` stops it when its
+daemon is done)."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from collections.abc import Sequence
+
+from ballbeam.config import Config
+from ballbeam.errors import BallbeamError
+from ballbeam.protocol.frames import FrameContract
+from ballbeam.runtime.bus import open_bus
+from ballbeam.runtime.process import (
+    add_config_arguments,
+    apply_scheduling,
+    config_from_arguments,
+    configure_logging,
+    resolve_config_argument,
+    settle_heap,
+)
+from ballbeam.runtime.stop import StopFlag
+from ballbeam_emulator.node import PlantEmulator
+
+log = logging.getLogger("ballbeam.emulator")
+EXIT_USAGE = 2
+
+
+def run_emulator(config: Config) -> None:
+    contract = FrameContract.load()
+    stop = StopFlag().install()
+    if config.run.mode == "realtime":  # lock-step has no deadlines to protect
+        apply_scheduling(config.plant.cpu, config.plant.realtime_priority)
+    bus = open_bus(config.bus)
+    emulator = PlantEmulator(config, bus, contract)
+    settle_heap()
+    try:
+        if config.run.mode == "lockstep":
+            emulator.run_lockstep(stop)
+        else:
+            emulator.run_realtime(stop)
+    finally:
+        emulator.stop()
+        bus.shutdown()
+        log.info("emulator stopped: %s", emulator.counters)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m ballbeam_emulator", description="The SRV02 ball-and-beam plant emulator."
+    )
+    add_config_arguments(parser)
+    args = parser.parse_args(argv)
+    configure_logging()
+    try:
+        resolve_config_argument(args)
+        run_emulator(config_from_arguments(args))
+    except BallbeamError as error:
+        print(f"ballbeam-emulator: error: {error}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        return 130
+    return 0

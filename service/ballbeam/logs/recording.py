@@ -1,0 +1,45 @@
+"""The typed recording front of a run: one write per topic record, events and faults.
+
+The daemon records through this, never through raw tuples: each topic takes its own record
+type (``logs/topics.py``), whose fields are the topic's layout.
+"""
+
+from __future__ import annotations
+
+from ballbeam.logs.recorder import ChannelHandle, Recorder
+from ballbeam.logs.topics import (
+    EVENT_SCHEMA,
+    EVENTS,
+    FAULTS,
+    JSON_TOPICS,
+    STRUCT_TOPICS,
+    R,
+    StructTopic,
+)
+
+
+class RunRecording:
+    def __init__(self, recorder: Recorder) -> None:
+        self.recorder = recorder
+        self._handles: dict[str, ChannelHandle] = {
+            name: recorder.add_struct_channel(name, schema)
+            for name, schema in STRUCT_TOPICS.items()
+        }
+        self._handles.update(
+            {name: recorder.add_json_channel(name, "ballbeam/Event", EVENT_SCHEMA)
+             for name in JSON_TOPICS}
+        )
+
+    def write(self, topic: StructTopic[R], log_time_ns: int, record: R) -> None:
+        self.recorder.record(self._handles[topic.name], log_time_ns, record)
+
+    def event(self, log_time_ns: int, cycle: int, kind: str, detail: str) -> None:
+        self._note(EVENTS, log_time_ns, cycle, kind, detail)
+
+    def fault(self, log_time_ns: int, cycle: int, kind: str, detail: str) -> None:
+        self._note(FAULTS, log_time_ns, cycle, kind, detail)
+
+    def _note(self, topic: str, log_time_ns: int, cycle: int, kind: str, detail: str) -> None:
+        self.recorder.record(
+            self._handles[topic], log_time_ns, {"cycle": cycle, "kind": kind, "detail": detail}
+        )

@@ -1,0 +1,65 @@
+"""Command out: voltage frames to the plant, each recorded as sent."""
+
+from __future__ import annotations
+
+import time
+
+import can
+
+from ballbeam.logs.recording import RunRecording
+from ballbeam.logs.topics import CAN_TX, COMMAND, CommandRecord
+from ballbeam.protocol.frames import VOLTAGE_COMMAND_ID, FrameContract, next_counter
+from ballbeam.runtime.daemon.intake import frame_record
+
+SHUTDOWN_REPEATS = 3  # the final 0 V is sent a few times: a frame can be lost
+
+
+class CommandOut:
+    def __init__(self, bus: can.BusABC, contract: FrameContract, recording: RunRecording) -> None:
+        self.bus = bus
+        self.contract = contract
+        self.recording = recording
+        self.counter = 0
+        self.last_data: bytes | None = None  # lock-step answers a repeated sample with it
+        self.resends = 0
+
+    def send(
+        self,
+        log_time_ns: int,
+        cycle: int,
+        voltage_v: float,
+        requested_v: float,
+        enable: bool,
+        sensor_counter: int,
+    ) -> None:
+        data = self.contract.encode_voltage_command(
+            self.counter, voltage_v, enable, sensor_counter
+        )
+        self.last_data = data
+        self._send_bytes(data, log_time_ns, cycle)
+        self.recording.write(COMMAND, log_time_ns, CommandRecord(
+            cycle, voltage_v, requested_v, int(enable), self.counter, sensor_counter
+        ))
+        self.counter = next_counter(self.counter)
+
+    def resend_last(self, log_time_ns: int, cycle: int) -> None:
+        if self.last_data is not None:
+            self._send_bytes(self.last_data, log_time_ns, cycle)
+            self.resends += 1
+
+    def shutdown(self, log_time_ns: int, cycle: int) -> None:
+        """0 V, disabled."""
+        for _ in range(SHUTDOWN_REPEATS):
+            data = self.contract.encode_voltage_command(self.counter, 0.0, False, 0)
+            self._send_bytes(data, log_time_ns, cycle)
+            self.counter = next_counter(self.counter)
+
+    def _send_bytes(self, data: bytes, log_time_ns: int, cycle: int) -> None:
+        message = can.Message(arbitration_id=VOLTAGE_COMMAND_ID, data=data, is_extended_id=False)
+        try:
+            self.bus.send(message)
+        except can.CanError as error:
+            self.recording.fault(log_time_ns, cycle, "send_failed", str(error))
+            return
+        message.timestamp = time.time()  # the clock the kernel stamps received frames with
+        self.recording.write(CAN_TX, log_time_ns, frame_record(message))

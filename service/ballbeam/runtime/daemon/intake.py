@@ -1,0 +1,107 @@
+"""Sensor intake: every frame the daemon hears, judged and recorded.
+
+Sensor frames must pass the contract and their counter check to become the latest sample;
+truth frames are paired (angle + ball, same counter) and recorded at their sample's time; the
+daemon's own commands looped back by the bus are counted and dropped; anything else is
+recorded as received and counted as rejected (never fatal).
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+
+import can
+
+from ballbeam.logs.recording import RunRecording
+from ballbeam.logs.topics import CAN_RX, TRUTH, CanFrameRecord, TruthRecord
+from ballbeam.protocol.frames import (
+    VOLTAGE_COMMAND_ID,
+    CounterCheck,
+    CounterVerdict,
+    FrameContract,
+    FrameRejectedError,
+    SensorFrame,
+    TruthAngle,
+    TruthBall,
+)
+
+MAX_RECORDED_REJECTIONS = 1000  # per reason: beyond this only the count grows (no log floods)
+
+
+def frame_record(message: can.Message) -> CanFrameRecord:
+    data = bytes(message.data).ljust(8, b"\0")[:8]
+    return CanFrameRecord(message.timestamp, message.arbitration_id, message.dlc, data)
+
+
+class SensorIntake:
+    def __init__(self, contract: FrameContract, recording: RunRecording) -> None:
+        self.contract = contract
+        self.recording = recording
+        self.sensor_check = CounterCheck()
+        self.latest: SensorFrame | None = None
+        self.fresh = False  # a sample arrived that no cycle has used yet
+        self.own_frames = 0
+        self.rejected: Counter[str] = Counter()
+        self._truth_angle: TruthAngle | None = None
+        # (counter, log time) of the latest accepted sample: its truth is logged at that time.
+        self._last_sample_log: tuple[int, int] | None = None
+
+    def take(self) -> SensorFrame | None:
+        """The latest sample if no cycle has used it yet."""
+        sample = self.latest if self.fresh else None
+        self.fresh = False
+        return sample
+
+    def reject(self, reason: str, detail: str, log_time_ns: int, cycle: int) -> None:
+        self.rejected[reason] += 1
+        if self.rejected[reason] <= MAX_RECORDED_REJECTIONS:
+            self.recording.fault(log_time_ns, cycle, f"rejected_{reason}", detail)
+
+    def handle(self, message: can.Message, log_time_ns: int, cycle: int) -> CounterVerdict | None:
+        """Judge one frame; the sensor counter verdict, or None for any other frame."""
+        # The contract is on standard-id data frames: an extended id that happens to have
+        # the same number, a remote frame or an error frame is someone else's.
+        foreign = message.is_extended_id or message.is_remote_frame or message.is_error_frame
+        if message.arbitration_id == VOLTAGE_COMMAND_ID and not foreign:
+            self.own_frames += 1  # our own command looped back by the bus
+            return None
+        self.recording.write(CAN_RX, log_time_ns, frame_record(message))
+        if foreign:
+            kind = ("extended-id" if message.is_extended_id
+                    else "remote" if message.is_remote_frame else "error")
+            self.reject("foreign", f"{kind} frame 0x{message.arbitration_id:X}", log_time_ns,
+                        cycle)
+            return None
+        try:
+            frame = self.contract.decode(message.arbitration_id, bytes(message.data))
+        except FrameRejectedError as error:
+            self.reject(error.reason, str(error), log_time_ns, cycle)
+            return None
+        if isinstance(frame, SensorFrame):
+            verdict = self.sensor_check.classify(frame.counter)
+            if verdict == "ok":
+                self.latest = frame
+                self.fresh = True
+                self._last_sample_log = (frame.counter, log_time_ns)
+            elif verdict == "stale":
+                self.reject("stale", f"sensor counter {frame.counter} is older than the last",
+                            log_time_ns, cycle)
+            return verdict
+        if isinstance(frame, TruthAngle):
+            self._truth_angle = frame
+        elif isinstance(frame, TruthBall):
+            angle = self._truth_angle
+            if angle is not None and angle.counter == frame.counter:
+                # Truth follows its sensor frame: log it at the time of that sample (now, if
+                # that sample's sensor frame never came: counters wrap, so no older match).
+                sample = self._last_sample_log
+                at_ns = sample[1] if sample and sample[0] == frame.counter else log_time_ns
+                self.recording.write(TRUTH, at_ns, TruthRecord(
+                    frame.counter, angle.theta_rad, angle.theta_rate_rad_s,
+                    frame.velocity_m_s, frame.position_m,
+                ))
+                self._truth_angle = None
+        else:
+            self.reject("direction", f"unexpected {type(frame).__name__} frame", log_time_ns,
+                        cycle)
+        return None
