@@ -443,7 +443,7 @@ def test_highspy_gives_what_linprog_gives(
 ) -> None:
     """The planner hands its LPs to HiGHS through ``highspy``; the same model and options
     through SciPy's public linprog must give the same plan, bit for bit."""
-    import ballbeam.core.planning.time_optimal as time_optimal
+    import ballbeam.core.planning.lp as lp
 
     calls = 0
 
@@ -459,7 +459,7 @@ def test_highspy_gives_what_linprog_gives(
             return True, np.asarray(res.x)
         return (False if res.status == 2 else None), np.zeros(0)
 
-    monkeypatch.setattr(time_optimal, "_highs_solve", through_linprog)
+    monkeypatch.setattr(lp, "_highs_solve", through_linprog)
     by_linprog = paper_plan(0.5)
     assert calls > 0
     assert by_linprog.n_steps == plan_margin.n_steps

@@ -113,11 +113,8 @@ class LinearModel:
         """Exact zero-order-hold discretisation at ``period_s``."""
         if not period_s > 0.0:
             raise ConfigError(f"sampling period must be positive, got {period_s} s")
-        n, m = self.B.shape
-        block = np.zeros((n + m, n + m))
-        block[:n, :n] = self.A
-        block[:n, n:] = self.B
-        transition = scipy.linalg.expm(block * period_s)
+        n = self.B.shape[0]
+        transition = zoh_transition(self.A, self.B, period_s)
         return DiscreteModel(
             Ad=transition[:n, :n].copy(),
             Bd=transition[:n, n:].copy(),
@@ -145,9 +142,23 @@ def zoh_propagate(
 ) -> np.ndarray:
     """State after holding ``input_v`` for ``duration_s`` from ``state`` (exact)."""
     n = A.shape[0]
-    block = np.zeros((n + 1, n + 1))
-    block[:n, :n] = A
-    block[:n, n] = B[:, 0]
-    transition = scipy.linalg.expm(block * duration_s)
+    transition = zoh_transition(A, B, duration_s)
     result: np.ndarray = transition[:n, :n] @ state + transition[:n, n] * input_v
     return result
+
+
+def zoh_generator(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``F = [[A, B], [0, 0]]`` (n + m, n + m): the state with the input held constant beside
+    it. ``expm(F t) = [[Ad(t), Bd(t)], [0, I]]`` is the zero-order hold over ``t``; the
+    tracker's Van Loan cost integral builds on F itself."""
+    n, m = B.shape
+    F = np.zeros((n + m, n + m))
+    F[:n, :n] = A
+    F[:n, n:] = B
+    return F
+
+
+def zoh_transition(A: np.ndarray, B: np.ndarray, duration_s: float) -> np.ndarray:
+    """``expm(F t)`` with ``F = zoh_generator(A, B)``: ``[[Ad, Bd], [0, I]]`` over ``t``."""
+    transition: np.ndarray = scipy.linalg.expm(zoh_generator(A, B) * duration_s)
+    return transition

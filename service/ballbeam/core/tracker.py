@@ -58,7 +58,7 @@ import scipy.integrate
 import scipy.linalg
 import scipy.signal
 
-from ballbeam.core.model import LinearModel
+from ballbeam.core.model import LinearModel, zoh_generator
 from ballbeam.core.plans import Plan
 from ballbeam.errors import ConfigError
 
@@ -127,9 +127,7 @@ def sampled_cost(model: LinearModel, Q: np.ndarray, R: np.ndarray, period_s: flo
     if not period_s > 0.0:
         raise ConfigError(f"sampling period must be positive, got {period_s} s")
     n, m = model.B.shape
-    F = np.zeros((n + m, n + m))
-    F[:n, :n] = model.A
-    F[:n, n:] = model.B
+    F = zoh_generator(model.A, model.B)
     block = np.zeros((2 * (n + m), 2 * (n + m)))
     block[: n + m, : n + m] = -F.T
     block[:n, n + m : 2 * n + m] = Q
