@@ -1,0 +1,174 @@
+"""Bad invocations: every refused command line exits 2 with one error line, never a traceback.
+
+The command-line fuzzing runs ``plan`` in-process on the rate-limited path, which plans in
+microseconds.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import random
+import re
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from mcap.writer import Writer
+
+from ballbeam import cli
+from ballbeam.config import Config
+
+from ..conftest import ballbeam
+
+PLAN = "plan.kind='rate_limited'"
+
+
+def _bad_invocations(tmp: Path) -> list[tuple[list[str], str, bool]]:
+    random_bytes = tmp / "random.mcap"
+    random_bytes.write_bytes(random.Random(3).randbytes(4096))
+    foreign = tmp / "foreign.mcap"
+    with foreign.open("wb") as stream:
+        writer = Writer(stream)
+        writer.start(profile="ros2", library="test")
+        writer.finish()
+    not_toml = tmp / "bad.toml"
+    not_toml.write_text("[controller\nrate_hz = \n")
+    loop = tmp / "loop.toml"
+    loop.write_text('extends = "loop.toml"\n')
+    missing = str(tmp / "missing.toml")
+    plan = ["plan", "--set", PLAN]
+    return [
+        ([*plan, "--set", "nosuch.key=1"], "unknown key", False),
+        ([*plan, "--set", "controller.rate_hz='fast'"], "controller.rate_hz", False),
+        ([*plan, "--set", "controller.rate_hz=1.5"], "controller.rate_hz", False),
+        ([*plan, "--set", "tracker.q=[1,-1,0,0]"], "positive semi-definite", False),
+        ([*plan, "--set", "tracker.q=[1,0,0]"], "4 diagonal entries", False),
+        ([*plan, "--set", "tracker.r=0"], "tracker.r", False),
+        ([*plan, "--set", "controller.rate_hz=3000"], "whole number of nanoseconds", False),
+        ([*plan, "--set", "controller.rate_hz=400"], "must divide", False),
+        ([*plan, "--set", "limits.voltage_v=-5"], "limits.voltage_v", False),
+        ([*plan, "--set", "limits.theta_deg=-52"], "limits.theta_deg", False),
+        ([*plan, "--set", "run.duration_s=nan"], "run.duration_s", False),
+        ([*plan, "--set", "no-equals-sign"], "dotted.key=value", False),
+        (["plan", missing], "not found", False),
+        (["plan", str(not_toml)], "not valid TOML", False),
+        (["plan", str(loop)], "extends", False),
+        (["plan", str(tmp)], "directory", False),
+        (
+            [
+                "run",
+                "--set",
+                PLAN,
+                "--set",
+                "bus.channel='ff02::1'",
+                "--set",
+                f"run.log_dir='{tmp}'",
+            ],
+            "leaves this host",
+            False,
+        ),
+        (["replay", str(tmp / "missing.mcap")], "cannot open log", False),
+        (["replay", str(random_bytes)], "not an MCAP file", False),
+        (["replay", str(foreign)], "not a ballbeam log", False),
+        (["replay", str(tmp)], "directory", False),
+        # argparse: usage, then one "ballbeam ...: error:" line
+        (["frobnicate"], "invalid choice", True),
+        (["daemon", "--log"], "expected one argument", True),
+        (["replay"], "required", True),
+        (["regress", "--jobs", "0"], "must be at least 1", True),
+        (["plan", "--bogus"], "unrecognized arguments", True),
+    ]
+
+
+def test_bad_invocations_exit_2_with_one_error_line(tmp_path: Path) -> None:
+    cases = _bad_invocations(tmp_path)
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        results = list(pool.map(lambda case: ballbeam(*case[0], timeout_s=60), cases))
+    for (argv, needle, from_argparse), result in zip(cases, results, strict=True):
+        where = f"ballbeam {' '.join(argv)}"
+        assert result.returncode == 2, (where, result.returncode, result.stderr)
+        assert "Traceback" not in result.stderr, (where, result.stderr)
+        lines = [line for line in result.stderr.splitlines() if line.strip()]
+        errors = [line for line in lines if re.match(r"ballbeam( \w+)?: error:", line)]
+        assert len(errors) == 1, (where, result.stderr)
+        assert needle in errors[0], (where, result.stderr)
+        if from_argparse:  # its usage, then its one error line
+            assert all(line.startswith(("usage:", " ")) for line in lines[:-1]), (where, lines)
+            assert lines[-1] == errors[0]
+        else:  # ours: the one line, nothing else
+            assert lines == errors and errors[0].startswith("ballbeam: error:"), (where, lines)
+
+
+def _leaf_keys() -> list[str]:
+    keys = []
+    for section, field in Config.model_fields.items():
+        annotation = field.annotation
+        if isinstance(annotation, type) and hasattr(annotation, "model_fields"):
+            keys += [f"{section}.{name}" for name in annotation.model_fields]
+        else:
+            keys.append(section)
+    return [key for key in keys if key != "plan.kind"]  # the path stays the rate-limited one
+
+
+TOML_VALUES = st.one_of(
+    st.sampled_from(
+        [
+            "0",
+            "1",
+            "-1",
+            "1e400",
+            "-0.0",
+            "nan",
+            "inf",
+            "-inf",
+            "1e-300",
+            "true",
+            "'text'",
+            '"x"',
+            "[]",
+            "[1,2,3]",
+            "[1,0,100,1000]",
+            "[0,0,0,0]",
+            "{a = 1}",
+            "1979-05-27",
+            "",
+            "[[",
+            "'",
+            "=",
+            "0x10",
+            "1_000",
+            "[1,'a']",
+            "9999999999999999999999",
+            "'ff11::1'",
+            "'udp_multicast'",
+        ]
+    ),
+    st.integers(-(10**6), 10**6).map(str),
+    st.floats(allow_nan=True, allow_infinity=True).map(repr),
+    st.text(max_size=12),
+)
+ASSIGNMENTS = st.one_of(
+    st.tuples(st.sampled_from(_leaf_keys()), TOML_VALUES).map(lambda kv: f"{kv[0]}={kv[1]}"),
+    st.tuples(st.text(max_size=15), TOML_VALUES).map(lambda kv: f"{kv[0]}={kv[1]}"),
+    st.text(max_size=20),
+)
+
+
+@settings(max_examples=120, deadline=None)
+@given(st.lists(ASSIGNMENTS, min_size=1, max_size=3), st.booleans())
+def test_random_overrides_exit_0_or_2_and_never_raise(assignments: list[str], glued: bool) -> None:
+    argv = ["plan", "--set", PLAN]
+    for assignment in assignments:
+        argv += [f"--set={assignment}"] if glued else ["--set", assignment]
+    stdout, stderr = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+        try:
+            code = cli.main(argv)
+        except SystemExit as exit_:  # argparse refusing the command line
+            code = exit_.code  # type: ignore[assignment]
+            assert code == 2, stderr.getvalue()
+    assert code in (0, 2), (argv, stderr.getvalue())
+    if code == 2 and stderr.getvalue().startswith("ballbeam: error:"):
+        assert len(stderr.getvalue().strip().splitlines()) == 1, stderr.getvalue()

@@ -1,0 +1,130 @@
+"""The emulator dies: the daemon faults to 0 V, stops, and finishes its file."""
+
+from __future__ import annotations
+
+import random
+import signal
+import time
+from pathlib import Path
+
+import pytest
+
+from ballbeam.evaluation.replay import verify
+from ballbeam.logs.reader import RunLog, read_log
+
+from ..conftest import ballbeam
+from .harness import (
+    DEFAULTS,
+    PERIOD_NS,
+    START_TIMEOUT_S,
+    TIMEOUT_PERIODS,
+    Bench,
+    events,
+    faults,
+    figure,
+    shutdown_frames,
+    summary_meta,
+)
+
+
+def _last_fresh_cycle(log: RunLog, before_cycle: int) -> int:
+    sensor = log.topics["/sensor"].values
+    mask = (sensor["fresh"] == 1) & (sensor["cycle"] < before_cycle)
+    return int(sensor["cycle"][mask].max())
+
+
+@pytest.mark.bus
+@pytest.mark.parametrize("stall_daemon", [False, True], ids=["plain", "daemon-stalled"])
+def test_emulator_killed_realtime_daemon_faults_to_0v_and_finishes_its_file(
+    tmp_path: Path, stall_daemon: bool
+) -> None:
+    """SIGKILL the plant. The daemon must fault at its first cycle that is at least
+    ``sensor_timeout_periods`` periods after the last fresh sample (3 cycles when it runs on
+    time), command 0 V disabled from then on, end the run after ``plant_lost_s`` and close a
+    complete file. "daemon-stalled" also freezes the daemon (SIGSTOP) twice: 20 ms just after
+    the kill (when that lands inside the first 3 periods, the detection straddles an overrun)
+    and 50 ms a tenth of a second later (always inside the silence): skipped periods are
+    silent periods too, for the fault and for ``plant_lost_s``."""
+    rng = random.Random(31 + stall_daemon)
+    with Bench(tmp_path, "realtime", 4.0) as bench:
+        bench.wait_cycling()
+        time.sleep(rng.uniform(0.4, 1.0))
+        bench.emulator.kill()
+        if stall_daemon:
+            for pause_s, stall_s in ((0.0003, 0.02), (0.1, 0.05)):
+                time.sleep(pause_s)
+                bench.daemon.send_signal(signal.SIGSTOP)
+                time.sleep(stall_s)
+                bench.daemon.send_signal(signal.SIGCONT)
+        bench.emulator.wait()
+        daemon_exit = bench.wait_daemon(START_TIMEOUT_S)
+        daemon_stderr = bench.stderr(bench.daemon)
+    # plant_lost ends the run normally: exit 0, with the reason in the file.
+    assert daemon_exit == 0, daemon_stderr[-2000:]
+    log = read_log(bench.log_path)
+    assert not log.truncated, log.truncation_reason
+    assert summary_meta(log)["end_reason"] == "plant_lost"
+    # The last timeout is the kill's (a scheduling hiccup may have caused a brief earlier one).
+    fault_cycle = int(faults(log, "sensor_timeout")[-1]["cycle"])
+    last_fresh = _last_fresh_cycle(log, fault_cycle)
+    executed = log.topics["/timing"].values["cycle"]
+
+    def first_executed(at_least: int) -> int:
+        return int(executed[executed >= at_least][0])
+
+    # The fault came at the first executed cycle at least TIMEOUT_PERIODS after the last sample.
+    assert fault_cycle == first_executed(last_fresh + TIMEOUT_PERIODS), (
+        last_fresh,
+        fault_cycle,
+        executed[-20:],
+    )
+    if not stall_daemon:
+        assert fault_cycle - last_fresh <= TIMEOUT_PERIODS
+    else:  # the second stall did happen, inside the silence
+        skipped = log.topics["/timing"].values["skipped"]
+        assert (skipped[executed > fault_cycle] >= 20).any(), skipped[executed > fault_cycle]
+    # 0 V, disabled, in every command from the fault on, then the stop frames.
+    command = log.topics["/command"].values
+    after = command["cycle"] >= fault_cycle
+    assert after.sum() > 0
+    assert (command["enable"][after] == 0).all()
+    assert (command["voltage_v"][after] == 0.0).all()
+    assert (command["requested_v"][after] == 0.0).all()
+    stops = shutdown_frames(log)
+    assert len(stops) == 3 and all(c.voltage_v == 0.0 and not c.enable for c in stops)
+    # Then the plant is declared lost after plant_lost_s of silence and the run ends.
+    lost = faults(log, "plant_lost")
+    assert len(lost) == 1
+    lost_after_periods = int(lost[0]["cycle"]) - last_fresh
+    plant_lost_periods = round(DEFAULTS.controller.plant_lost_s * 1e9 / PERIOD_NS)
+    assert int(lost[0]["cycle"]) == first_executed(last_fresh + plant_lost_periods)
+    assert "reason=plant_lost" in events(log, "daemon_stop")[0]["detail"]
+    assert verify(log).ok
+    replay = ballbeam("replay", str(bench.log_path))
+    assert replay.returncode == 0, replay.stderr
+    assert "plant_lost" in replay.stdout
+    figure(
+        f"emulator_kill_{'stalled' if stall_daemon else 'plain'}",
+        {"detection_periods": fault_cycle - last_fresh, "plant_lost_periods": lost_after_periods},
+    )
+
+
+@pytest.mark.bus
+def test_emulator_killed_lockstep_daemon_stops_on_silence_and_finishes_its_file(
+    tmp_path: Path,
+) -> None:
+    with Bench(tmp_path, "lockstep", 20.0, "controller.lockstep_timeout_s=0.5") as bench:
+        bench.wait_cycling()
+        time.sleep(0.5)
+        bench.emulator.kill()
+        bench.emulator.wait()
+        daemon_exit = bench.wait_daemon(START_TIMEOUT_S)
+        daemon_stderr = bench.stderr(bench.daemon)
+    assert daemon_exit == 0, daemon_stderr[-2000:]
+    log = read_log(bench.log_path)
+    assert not log.truncated
+    assert summary_meta(log)["end_reason"] == "plant_silent"
+    assert len(faults(log, "plant_silent")) == 1
+    stops = shutdown_frames(log)
+    assert len(stops) == 3 and all(c.voltage_v == 0.0 and not c.enable for c in stops)
+    assert verify(log).ok
