@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 from floors import exchange_floor, machine_stalls
 
-from ballbeam.assembly import controller_design, make_plan, run_offline
+from ballbeam.assembly import controller_design, make_plan, physical_constants, run_offline
 from ballbeam.config import load_config
 from ballbeam.evaluation.summary import summarise
 from ballbeam.logs.reader import RunLog, read_log
@@ -254,7 +254,7 @@ def bench_plan(repeats: int) -> dict[str, Any]:
             * _median_s(lambda config=config: controller_design(config), repeats),
         }
     # Rate-limited planner against Ruckig on the same inputs (paper start, both slopes).
-    constants = load_config(PAPER).constants()
+    constants = physical_constants(load_config(PAPER))
     acceleration_max = abs(constants.gamma) * math.radians(52)
     start_accel = constants.gamma * math.radians(-52)
     for slope in (9.325, 8.0):

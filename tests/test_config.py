@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -9,7 +10,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from ballbeam.config import Config, load_config, parse_override
+from ballbeam.assembly import physical_constants
+from ballbeam.config import Config, ModelSection, load_config, parse_override
+from ballbeam.core.model import PhysicalConstants
 from ballbeam.errors import ConfigError
 
 from .conftest import CONFIGS
@@ -21,7 +24,7 @@ def test_paper_config_holds_the_papers_setup(paper_config_path: Path) -> None:
     assert config.initial.ball_position_m == 0.195
     assert config.limits.voltage_v == 5.0
     assert config.limits.theta_deg == 52.0
-    constants = config.constants()
+    constants = physical_constants(config)
     # α = km·kg/(Rm·Jm·kg²), β = km·kg, γ = −5 g r / (7 L), computed here from the paper's table.
     assert constants.alpha == pytest.approx(0.00767 * 70 / (2.6 * 3.87e-7 * 70**2), rel=1e-12)
     assert constants.alpha == pytest.approx(108.90, abs=0.01)
@@ -29,6 +32,14 @@ def test_paper_config_holds_the_papers_setup(paper_config_path: Path) -> None:
     assert constants.gamma == pytest.approx(-5 * 9.81 / (7 * 17), rel=1e-9)
     # The paper's 5 V slope: 5/β.
     assert constants.slew_rate_rad_s(5.0) == pytest.approx(9.3127, abs=1e-4)
+
+
+def test_model_defaults_are_the_physical_constants() -> None:
+    """The paper's constants have one home, ``PhysicalConstants``; the config only reads them."""
+    assert ModelSection.model_fields.keys() == {
+        field.name for field in dataclasses.fields(PhysicalConstants)
+    }
+    assert physical_constants(load_config(None)) == PhysicalConstants()
 
 
 def test_defaults_equal_the_paper_file(paper_config_path: Path) -> None:

@@ -11,9 +11,9 @@ from scipy.integrate import solve_ivp
 from ballbeam.assembly import controller_design
 from ballbeam.config import load_config
 from ballbeam.core.guard import AngleGuard, guarded_voltage, stopping_distance_rad
-from ballbeam.core.model import PlantConstants
+from ballbeam.core.model import PhysicalConstants
 
-CONSTANTS = PlantConstants()
+CONSTANTS = PhysicalConstants()
 ALPHA = CONSTANTS.alpha
 ALPHA_BETA = CONSTANTS.alpha * CONSTANTS.beta
 BRAKE_V = 4.9  # the default: 5 V less the 0.1 V dead zone

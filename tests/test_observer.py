@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from ballbeam.core.model import LinearModel, PlantConstants
+from ballbeam.core.model import LinearModel, PhysicalConstants
 from ballbeam.core.observer import (
     ObserverGains,
     correct,
@@ -21,7 +21,7 @@ from ballbeam.core.observer import (
 from ballbeam.errors import ConfigError
 
 PERIOD_S = 1e-3
-DISCRETE = LinearModel.from_constants(PlantConstants()).discretize(PERIOD_S)
+DISCRETE = LinearModel.from_constants(PhysicalConstants()).discretize(PERIOD_S)
 NOISE = {
     "input_noise_v": 0.3,
     "ball_noise_m_s2": 0.05,

@@ -9,12 +9,12 @@ import pytest
 from numpy.testing import assert_allclose
 from scipy.integrate import solve_ivp
 
-from ballbeam.core.model import BALL_POSITION, BALL_VELOCITY, THETA, THETA_RATE, PlantConstants
+from ballbeam.core.model import BALL_POSITION, BALL_VELOCITY, THETA, THETA_RATE, PhysicalConstants
 from ballbeam.core.planning.bang_bang import plan_bang_bang
-from ballbeam.core.plans import at_time
+from ballbeam.core.planning.plan import at_time
 from ballbeam.errors import PlanningError
 
-CONSTANTS = PlantConstants()
+CONSTANTS = PhysicalConstants()
 THETA_MAX_RAD = math.radians(52.0)
 PAPER_START = np.array([math.radians(-52.0), 0.0, 0.0, 0.195])
 

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 from scipy.integrate import solve_ivp
 
-from ballbeam.core.model import BALL_POSITION, BALL_VELOCITY, THETA, THETA_RATE, PlantConstants
+from ballbeam.core.model import BALL_POSITION, BALL_VELOCITY, THETA, THETA_RATE, PhysicalConstants
 from ballbeam.core.planning.rate_limited import (
     RateLimitedPlan,
     plan_rate_limited,
@@ -20,7 +20,7 @@ from ballbeam.core.planning.rate_limited import (
 )
 from ballbeam.errors import PlanningError
 
-CONSTANTS = PlantConstants()
+CONSTANTS = PhysicalConstants()
 GAMMA = CONSTANTS.gamma
 THETA_MAX_RAD = math.radians(52.0)
 ACCEL_MAX = abs(GAMMA) * THETA_MAX_RAD

@@ -27,18 +27,18 @@ from ballbeam.core.model import (
     THETA,
     THETA_RATE,
     LinearModel,
-    PlantConstants,
+    PhysicalConstants,
     zoh_propagate,
 )
+from ballbeam.core.planning.plan import at_time
 from ballbeam.core.planning.time_optimal import (
     TimeOptimalPlan,
     intersample_margin_rad,
     plan_time_optimal,
 )
-from ballbeam.core.plans import at_time
 from ballbeam.errors import ConfigError, PlanningError
 
-CONSTANTS = PlantConstants()
+CONSTANTS = PhysicalConstants()
 MODEL = LinearModel.from_constants(CONSTANTS)
 ALPHA = CONSTANTS.alpha
 BETA = CONSTANTS.beta

@@ -12,7 +12,7 @@ from numpy.testing import assert_allclose
 from ballbeam.assembly import plant_parameters
 from ballbeam.config import load_config
 from ballbeam.core.plant import (
-    PlantParameters,
+    EmulatedPlant,
     PlantPhysics,
     drive_voltage,
     next_noise,
@@ -20,7 +20,7 @@ from ballbeam.core.plant import (
 )
 
 
-def _params(**changes: object) -> PlantParameters:
+def _params(**changes: object) -> EmulatedPlant:
     base = plant_parameters(load_config(None, ["plant.deadzone_v=0"]))
     return dataclasses.replace(base, **changes)  # type: ignore[arg-type]
 

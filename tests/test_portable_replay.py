@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from ballbeam.assembly import controller_design
+from ballbeam.assembly import controller_design, design_model
 from ballbeam.config import load_config
 from ballbeam.core import observer as matrix_observer
 from ballbeam.core.control import (
@@ -74,7 +74,7 @@ def test_the_plain_float_law_is_the_kalman_filter_in_matrix_form(
     """predict/correct against the observer module's numpy form, to rounding."""
     config = load_config(None)
     gains = matrix_observer.design_observer(
-        config.design_model().discretize(config.controller.period_s),
+        design_model(config).discretize(config.controller.period_s),
         input_noise_v=0.3, ball_noise_m_s2=0.05, angle_noise_rad=1e-3, position_noise_m=2e-4,
     )
     from ballbeam.core.control import ObserverLaw

@@ -10,8 +10,8 @@ import pytest
 import scipy.linalg
 from numpy.testing import assert_allclose
 
-from ballbeam.core.model import LinearModel, PlantConstants
-from ballbeam.core.plans import PlanSamples
+from ballbeam.core.model import LinearModel, PhysicalConstants
+from ballbeam.core.planning.plan import PlanSamples
 from ballbeam.core.tracker import (
     continuous_tracker,
     discrete_tracker,
@@ -22,7 +22,7 @@ from ballbeam.core.tracker import (
 )
 from ballbeam.errors import ConfigError
 
-MODEL = LinearModel.from_constants(PlantConstants())
+MODEL = LinearModel.from_constants(PhysicalConstants())
 Q = np.diag([50.0, 0.0, 20.0, 2000.0])
 R = np.array([[0.05]])
 ALPHA = float(MODEL.B[1, 0])

@@ -14,17 +14,35 @@ from ballbeam.config import Config
 from ballbeam.core.control import ControllerDesign, ObserverLaw
 from ballbeam.core.guard import make_angle_guard
 from ballbeam.core.metrics import RunMetrics, compute_metrics
+from ballbeam.core.model import LinearModel, PhysicalConstants
 from ballbeam.core.observer import design_observer
-from ballbeam.core.plans import Plan
-from ballbeam.core.plant import ADC_COUNT_LIMIT, PlantParameters, PlantPhysics
+from ballbeam.core.planning.plan import Plan
+from ballbeam.core.plant import ADC_COUNT_LIMIT, EmulatedPlant, PlantPhysics
 from ballbeam.core.simulate import SimulationTrace, simulate_closed_loop
 from ballbeam.core.tracker import synthesize_discrete
 
 DEFAULT_POSITION_NOISE_M = 2e-4
 
 
+def physical_constants(config: Config) -> PhysicalConstants:
+    """The design model's physical constants: the paper's, with the config's ``[model]`` keys."""
+    return PhysicalConstants(**config.model.model_dump())
+
+
+def design_model(config: Config) -> LinearModel:
+    """The linear model the controller is designed on."""
+    return LinearModel.from_constants(physical_constants(config))
+
+
+def true_model(config: Config) -> LinearModel:
+    """The emulated plant's linear model: the design model with the ``[plant]`` gain scales."""
+    return LinearModel.from_constants(
+        physical_constants(config), config.plant.motor_gain_scale, config.plant.ball_gain_scale
+    )
+
+
 def make_plan(config: Config) -> Plan:
-    constants = config.constants()
+    constants = physical_constants(config)
     start = config.initial.state()
     theta_max_rad = config.limits.theta_rad
     kind = config.plan.kind
@@ -42,7 +60,7 @@ def make_plan(config: Config) -> Plan:
     from ballbeam.core.planning.time_optimal import plan_time_optimal
 
     return plan_time_optimal(
-        config.design_model(),
+        design_model(config),
         start,
         voltage_limit_v=config.limits.voltage_v - config.plan.voltage_margin_v,
         # The margin keeps the path off the limit, but never excludes the start itself
@@ -57,7 +75,7 @@ def make_plan(config: Config) -> Plan:
 
 def controller_design(config: Config, plan: Plan | None = None) -> ControllerDesign:
     plan = plan if plan is not None else make_plan(config)
-    model = config.design_model()
+    model = design_model(config)
     period_s = config.controller.period_s
     tracker_cfg = config.tracker
     tracker = synthesize_discrete(
@@ -71,7 +89,7 @@ def controller_design(config: Config, plan: Plan | None = None) -> ControllerDes
         input_reference=tracker_cfg.input_reference,
     )
     sensors = config.sensors
-    constants = config.constants()
+    constants = physical_constants(config)
     encoder_step_rad = sensors.encoder_step_rad
     adc_step_m = sensors.adc_step_m(constants.beam_length_m)
     observer_cfg = config.observer
@@ -129,15 +147,15 @@ def controller_design(config: Config, plan: Plan | None = None) -> ControllerDes
     )
 
 
-def plant_parameters(config: Config) -> PlantParameters:
+def plant_parameters(config: Config) -> EmulatedPlant:
     plant = config.plant
-    constants = config.constants()
-    true_model = config.true_model()
+    constants = physical_constants(config)
+    plant_model = true_model(config)
     sensor_period_s = 1.0 / plant.sensor_rate_hz
-    return PlantParameters(
-        alpha=float(true_model.B[1, 0]),
-        alpha_beta=float(-true_model.A[1, 1]),
-        gamma=float(true_model.A[2, 0]),
+    return EmulatedPlant(
+        alpha=float(plant_model.B[1, 0]),
+        alpha_beta=float(-plant_model.A[1, 1]),
+        gamma=float(plant_model.A[2, 0]),
         ball_gain_scale=plant.ball_gain_scale,
         saturation_v=plant.saturation_v,
         deadzone_v=plant.deadzone_v,

@@ -22,12 +22,14 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from ballbeam.core.metrics import EXPECTABLE_METRICS
-from ballbeam.core.model import LinearModel, PlantConstants
+from ballbeam.core.model import PhysicalConstants
 from ballbeam.errors import ConfigError
 
 MAX_EXTENDS_DEPTH = 16
 # Interface-local IPv6 multicast (scope 1): the kernel loops it back and never transmits it.
 DEFAULT_BUS_GROUP = "ff11:7079:7468:6f6e:6465:6d6f:6d63:6173"
+# The paper's constants: ModelSection's defaults (they are written only in core/model.py).
+_PAPER = PhysicalConstants()
 
 
 class _Section(BaseModel):
@@ -35,20 +37,21 @@ class _Section(BaseModel):
 
 
 class ModelSection(_Section):
-    """The controller's design model: the paper's constants (docs/design.md §2)."""
+    """The controller's design model: the paper's constants (docs/design.md §2).
 
-    torque_constant_nm_per_a: float = Field(0.00767, gt=0)
-    gear_ratio: float = Field(70.0, gt=0)
-    armature_resistance_ohm: float = Field(2.6, gt=0)
-    armature_inertia_kg_m2: float = Field(3.87e-7, gt=0)
-    gravity_m_per_s2: float = Field(9.81, gt=0)
-    arm_radius_m: float = Field(0.0254, gt=0)
-    beam_length_m: float = Field(0.4318, gt=0)
-    angle_sensor_gain: float = Field(57.0, gt=0)
-    position_sensor_gain: float = Field(100.0, gt=0)
+    The defaults are :class:`~ballbeam.core.model.PhysicalConstants`' own (their one home);
+    a config sets a key only to differ from the paper.
+    """
 
-    def constants(self) -> PlantConstants:
-        return PlantConstants(**self.model_dump())
+    torque_constant_nm_per_a: float = Field(_PAPER.torque_constant_nm_per_a, gt=0)
+    gear_ratio: float = Field(_PAPER.gear_ratio, gt=0)
+    armature_resistance_ohm: float = Field(_PAPER.armature_resistance_ohm, gt=0)
+    armature_inertia_kg_m2: float = Field(_PAPER.armature_inertia_kg_m2, gt=0)
+    gravity_m_per_s2: float = Field(_PAPER.gravity_m_per_s2, gt=0)
+    arm_radius_m: float = Field(_PAPER.arm_radius_m, gt=0)
+    beam_length_m: float = Field(_PAPER.beam_length_m, gt=0)
+    angle_sensor_gain: float = Field(_PAPER.angle_sensor_gain, gt=0)
+    position_sensor_gain: float = Field(_PAPER.position_sensor_gain, gt=0)
 
 
 class LimitsSection(_Section):
@@ -260,6 +263,21 @@ class BusSection(_Section):
         False, description="permit a multicast group whose traffic leaves this host"
     )
     options: dict[str, str | int | float | bool] = Field(default_factory=dict)
+    authenticate: bool | None = Field(
+        None,
+        description=(
+            "SecOC-style frames (CAN FD: classic payload + freshness + truncated HMAC, keyed "
+            "by a per-run secret); default: on for udp_multicast and virtual, off otherwise "
+            "(classic 8-byte E2E frames, the DBC's contract for real CAN hardware)"
+        ),
+    )
+
+    @property
+    def authenticated(self) -> bool:
+        """Whether this bus carries authenticated frames (``authenticate`` resolved)."""
+        if self.authenticate is not None:
+            return self.authenticate
+        return self.interface in ("udp_multicast", "virtual")
 
 
 class Config(_Section):
@@ -311,18 +329,6 @@ class Config(_Section):
                     f"expect.{metric} must be a table with 'min' and/or 'max', got {bound}"
                 )
         return self
-
-    # Derived objects used across the project.
-    def constants(self) -> PlantConstants:
-        return self.model.constants()
-
-    def design_model(self) -> LinearModel:
-        return LinearModel.from_constants(self.constants())
-
-    def true_model(self) -> LinearModel:
-        return LinearModel.from_constants(
-            self.constants(), self.plant.motor_gain_scale, self.plant.ball_gain_scale
-        )
 
 
 def _deep_merge(base: dict[str, Any], override: Mapping[str, Any]) -> dict[str, Any]:

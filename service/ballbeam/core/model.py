@@ -19,17 +19,21 @@ THETA, THETA_RATE, BALL_VELOCITY, BALL_POSITION = range(N_STATES)
 
 
 @dataclass(frozen=True)
-class PlantConstants:
-    """Physical constants of the SRV02 and the ball-and-beam module, SI units."""
+class PhysicalConstants:
+    """Physical constants of the SRV02 and the ball-and-beam module, SI units.
+
+    The defaults are the paper's (docs/design.md §2) and this is their one home: the config's
+    ``[model]`` section takes its defaults from here and only overrides them.
+    """
 
     torque_constant_nm_per_a: float = 0.00767
-    gear_ratio: float = 70.0
+    gear_ratio: float = 70.0  # 14:1 gearbox × 5:1 gears
     armature_resistance_ohm: float = 2.6
     armature_inertia_kg_m2: float = 3.87e-7
     gravity_m_per_s2: float = 9.81
-    arm_radius_m: float = 0.0254
-    beam_length_m: float = 0.4318
-    angle_sensor_gain: float = 57.0
+    arm_radius_m: float = 0.0254  # r = 1 in
+    beam_length_m: float = 0.4318  # L = 17 in
+    angle_sensor_gain: float = 57.0  # C = [[57, 0, 0, 0], [0, 0, 0, 100]]
     position_sensor_gain: float = 100.0
 
     @property
@@ -72,7 +76,7 @@ class LinearModel:
     @classmethod
     def from_constants(
         cls,
-        constants: PlantConstants,
+        constants: PhysicalConstants,
         motor_gain_scale: float = 1.0,
         ball_gain_scale: float = 1.0,
     ) -> LinearModel:

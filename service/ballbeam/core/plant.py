@@ -19,8 +19,10 @@ ADC_COUNT_LIMIT = 32767  # signed 16-bit frame field
 
 
 @dataclass(frozen=True)
-class PlantParameters:
-    """Everything the physics needs, SI units."""
+class EmulatedPlant:
+    """Everything the emulated plant's physics needs, SI units: the true plant's gains (which
+    may differ from the design model's) and its nonlinearities and sensors.
+    """
 
     alpha: float  # true volts → servo acceleration [rad/s² per V]
     alpha_beta: float  # true back-EMF damping [1/s]
@@ -49,7 +51,7 @@ class SensorReading:
     position_counts: int
 
 
-def drive_voltage(params: PlantParameters, command_v: float) -> float:
+def drive_voltage(params: EmulatedPlant, command_v: float) -> float:
     """Voltage reaching the motor: saturate, then remove the dead zone (paper figure 2)."""
     saturated = min(max(command_v, -params.saturation_v), params.saturation_v)
     if abs(saturated) <= params.deadzone_v:
@@ -62,7 +64,7 @@ class PlantPhysics:
     nonlinear ball: RK4 per substep. The servo hard stops and the beam ends are physical and
     apply to both (the linear ball checks them once per call, the nonlinear one per substep)."""
 
-    def __init__(self, params: PlantParameters) -> None:
+    def __init__(self, params: EmulatedPlant) -> None:
         self.params = params
         true_model = LinearModel.from_gains(
             params.alpha, params.alpha_beta, params.gamma, C=np.zeros((2, 4))
@@ -134,13 +136,13 @@ class PlantPhysics:
         return state
 
 
-def next_noise(params: PlantParameters, noise_m: float, rng: np.random.Generator) -> float:
+def next_noise(params: EmulatedPlant, noise_m: float, rng: np.random.Generator) -> float:
     """One sensor-period step of first-order band-limited noise with stationary std σ."""
     a = params.noise_pole
     return a * noise_m + math.sqrt(1.0 - a * a) * params.position_noise_m * rng.standard_normal()
 
 
-def read_sensors(params: PlantParameters, state: np.ndarray, noise_m: float) -> SensorReading:
+def read_sensors(params: EmulatedPlant, state: np.ndarray, noise_m: float) -> SensorReading:
     """Encoder counts of θ and ADC counts of the (noisy) ball position, clipped to the ADC."""
     angle_counts = round(float(state[THETA]) / params.encoder_step_rad)
     position_counts = round((float(state[BALL_POSITION]) + noise_m) / params.adc_step_m)
@@ -148,5 +150,5 @@ def read_sensors(params: PlantParameters, state: np.ndarray, noise_m: float) -> 
     return SensorReading(angle_counts, max(-limit - 1, min(limit, position_counts)))
 
 
-def initial_noise(params: PlantParameters, rng: np.random.Generator) -> float:
+def initial_noise(params: EmulatedPlant, rng: np.random.Generator) -> float:
     return float(params.position_noise_m * rng.standard_normal())

@@ -59,7 +59,7 @@ import scipy.linalg
 import scipy.signal
 
 from ballbeam.core.model import LinearModel, zoh_generator
-from ballbeam.core.plans import Plan
+from ballbeam.core.planning.plan import Plan
 from ballbeam.errors import ConfigError
 
 Terminal = Literal["stationary", "zero"]

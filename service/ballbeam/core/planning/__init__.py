@@ -1,1 +1,3 @@
-"""Planners: bang-bang, servo-rate-limited and full-model time-optimal paths."""
+"""The plan shape every planner returns (`plan.py`) and the planners: bang-bang,
+servo-rate-limited and full-model time-optimal paths.
+"""

@@ -23,9 +23,9 @@ from ballbeam.core.model import (
     BALL_VELOCITY,
     N_STATES,
     THETA,
-    PlantConstants,
+    PhysicalConstants,
 )
-from ballbeam.core.plans import PlanSamples
+from ballbeam.core.planning.plan import PlanSamples
 from ballbeam.errors import PlanningError
 
 
@@ -81,7 +81,7 @@ class BangBangPlan:
 
 
 def plan_bang_bang(
-    constants: PlantConstants, theta_max_rad: float, initial_state: np.ndarray
+    constants: PhysicalConstants, theta_max_rad: float, initial_state: np.ndarray
 ) -> BangBangPlan:
     """Minimum-time path from ``initial_state`` (θ, θ̇, ẋ, x) to rest at x = 0, |θ| <= θmax.
 

@@ -46,9 +46,9 @@ from ballbeam.core.model import (
     N_STATES,
     THETA,
     THETA_RATE,
-    PlantConstants,
+    PhysicalConstants,
 )
-from ballbeam.core.plans import PlanSamples
+from ballbeam.core.planning.plan import PlanSamples
 from ballbeam.errors import PlanningError
 
 # Root-finding tolerance on the scalar parameter; the end-position error is this times ~T.
@@ -320,7 +320,7 @@ class RateLimitedPlan:
 
 
 def plan_rate_limited(
-    constants: PlantConstants,
+    constants: PhysicalConstants,
     theta_max_rad: float,
     theta_rate_max_rad_s: float,
     initial_state: np.ndarray,

@@ -54,7 +54,7 @@ import numpy as np
 from ballbeam.core.model import LinearModel
 from ballbeam.core.planning.lag_hold import _accel_max, _Params, _params, _propagate, _simulate
 from ballbeam.core.planning.lp import _Grid, _make_grid, _Solve, _solve_steps
-from ballbeam.core.plans import PlanSamples
+from ballbeam.core.planning.plan import PlanSamples
 from ballbeam.errors import ConfigError, PlanningError
 
 __all__ = ["TimeOptimalPlan", "intersample_margin_rad", "plan_time_optimal"]
