@@ -151,7 +151,7 @@ def command_run(args: argparse.Namespace) -> int:
         print_json(summary)
     else:
         print_table(
-            f"bench run ({result.config.run.mode}, {result.config.plan.kind} path) "
+            f"bus run ({result.config.run.mode}, {result.config.plan.kind} path) "
             f"over {result.config.bus.interface}",
             summary,
         )

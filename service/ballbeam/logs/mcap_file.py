@@ -1,12 +1,13 @@
 """MCAP file assembly for the recorder: cheap per message, flat in memory.
 
-The mcap library's ``Writer`` spends about 3 µs of Python on each message and keeps every
-chunk's index record in memory until ``finish()``. At ten messages per control cycle that was
-the daemon's largest cost in lock-step, and a run's memory grew with its length (a chunk every
-50 ms: about 0.6 MiB a minute). This writer produces the same format with two differences:
+The mcap library's ``Writer`` spends several microseconds of Python on each message and keeps
+every chunk's index record in memory until ``finish()``. At ten messages per control cycle that
+was the daemon's largest cost in lock-step, and a run's memory grew with its length (a chunk
+every 50 ms). This writer produces the same format with two differences (figures: README,
+benchmarks):
 
 * a message is one ``struct.pack`` appended to the open chunk, and its index entry two
-  integers appended to an array (about 0.6 µs);
+  integers appended to an array;
 * each chunk's index record is spilled to an anonymous temporary file as the chunk is written,
   and read back once into the summary section at the end.
 

@@ -2,7 +2,7 @@
 
 The loop thread encodes each message (CDR through its channel's precompiled
 :class:`~ballbeam.logs.schema.StructSchema`, or JSON) and appends it to the open chunk of a
-:class:`~ballbeam.logs.mcap_file.McapFile` (:meth:`Recorder.record`, about 2 µs). Every
+:class:`~ballbeam.logs.mcap_file.McapFile` (:meth:`Recorder.record`). Every
 ``flush_interval_s`` a writer thread takes the open chunk, compresses it (zstd), writes it with
 its message indexes and hands it to the OS, so a killed process loses at most about one flush
 interval of data. Encoding in the loop thread costs it a microsecond more than queueing values
@@ -252,7 +252,7 @@ class Recorder:
     def record(
         self, handle: ChannelHandle, log_time_ns: int, values: Sequence[Any] | Mapping[str, Any]
     ) -> None:
-        """Encode one message into the open chunk (about 2 µs). Never blocks on I/O and
+        """Encode one message into the open chunk. Never blocks on I/O and
         never raises.
 
         ``values`` is a tuple in field order (fastest) or a mapping by field name; for a JSON

@@ -86,10 +86,10 @@ def apply_scheduling(cpu: int | None, realtime_priority: int | None) -> dict[str
 def settle_heap() -> None:
     """Collect once, then exempt every object alive now from later collections.
 
-    A full collection of the ~90,000 objects numpy, scipy, pydantic and the controller design
-    leave behind takes about 20 ms here, and the interpreter starts one whenever enough
-    allocations pile up: a 20-period stall at 1 kHz. Frozen, they are never scanned again, so
-    the collections the loop's own allocations trigger take microseconds.
+    A full collection of the tens of thousands of objects numpy, scipy, pydantic and the
+    controller design leave behind stalls the loop for many periods (README, benchmarks), and
+    the interpreter starts one whenever enough allocations pile up. Frozen, they are never
+    scanned again, so the collections the loop's own allocations trigger stay short.
     """
     gc.collect()
     gc.freeze()
@@ -117,6 +117,32 @@ def add_config_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="KEY=VALUE",
         help="override a config key, e.g. --set plan.kind=rate_limited (repeatable)",
     )
+
+
+def add_secret_argument(parser: argparse.ArgumentParser) -> None:
+    """``--secret-fd N``: read the run's 32-byte secret from inherited file descriptor N."""
+    parser.add_argument(
+        "--secret-fd",
+        type=int,
+        metavar="N",
+        help="read the run's 32-byte frame-authentication secret from file descriptor N "
+        "(ballbeam run passes a pipe; alone: --secret-fd 0 < secret.bin). Never put a "
+        "secret on the command line",
+    )
+
+
+def secret_from_arguments(args: argparse.Namespace) -> bytes | None:
+    """The secret ``--secret-fd`` names (read once, the descriptor closed), or None."""
+    from ballbeam.errors import BusError
+    from ballbeam.protocol.secoc import read_secret
+
+    fd = getattr(args, "secret_fd", None)
+    if fd is None:
+        return None
+    try:
+        return read_secret(fd)
+    except (OSError, ValueError) as error:
+        raise BusError(f"cannot read the run secret from --secret-fd {fd}: {error}") from error
 
 
 def resolve_config_argument(args: argparse.Namespace) -> None:
