@@ -1,4 +1,4 @@
-"""The real two-process bench over the ff11 udp_multicast bus (and SocketCAN where present)."""
+"""Runs of the two processes over the ff11 udp_multicast bus (and SocketCAN where present)."""
 
 from __future__ import annotations
 
