@@ -10,7 +10,7 @@ from scipy.integrate import solve_ivp
 
 from ballbeam.assembly import controller_design
 from ballbeam.config import load_config
-from ballbeam.core.guard import AngleGuard, guarded_voltage, stopping_distance_rad
+from ballbeam.core.guard import AngleGuard, guarded_voltage, soft_cap_v, stopping_distance_rad
 from ballbeam.core.model import PhysicalConstants
 
 CONSTANTS = PhysicalConstants()
@@ -78,3 +78,37 @@ def test_guard_passes_demands_that_are_safe(guard: AngleGuard) -> None:
     for demand in (-3.0, 0.0, 2.5):
         assert guarded_voltage(guard, state, demand) == demand
     assert guarded_voltage(guard, state, 12.0) == guard.voltage_limit_v
+
+
+def test_soft_cap_is_continuous_and_idle_away_from_the_limit(guard: AngleGuard) -> None:
+    """The soft cap moves by little for a one-count change of the angle (no full-scale flips
+    on encoder noise), and lets a servo at rest in the middle do anything."""
+    assert guard.soft is not None
+    step_rad = 2 * math.pi / 4096
+    for theta_deg in (40.0, 50.0, 51.5, 51.8, 51.9, 52.0):
+        for rate in (-1.0, 0.0, 0.5, 3.0):
+            theta = math.radians(theta_deg)
+            jump = soft_cap_v(guard.soft, theta + step_rad, rate) - soft_cap_v(
+                guard.soft, theta, rate
+            )
+            assert abs(jump) < 0.5, (theta_deg, rate, jump)
+    assert guarded_voltage(guard, (0.0, 0.0, 0.0, 0.0), 5.0) == guard.voltage_limit_v
+
+
+def test_soft_cap_follows_the_braking_curve_and_stops_at_its_limit(guard: AngleGuard) -> None:
+    """Driven at +5 V from 40°, the motor model under the soft cap alone comes to rest at the
+    soft limit without passing it, and the cap never flips sign on the way in."""
+    assert guard.soft is not None
+    soft = guard.soft
+    h = 1e-4
+    theta, rate = math.radians(40.0), 0.0
+    caps = []
+    for _ in range(20_000):  # 2 s
+        cap = min(5.0, soft_cap_v(soft, theta, rate))
+        caps.append(cap)
+        accel = -soft.alpha_beta * rate + soft.alpha * max(cap, -5.0)
+        theta, rate = theta + h * rate, rate + h * accel
+        assert theta <= soft.theta_limit_rad + 1e-6
+    assert theta == pytest.approx(soft.theta_limit_rad, abs=math.radians(0.01))
+    flips = np.count_nonzero(np.diff(np.sign(np.array(caps)[np.abs(caps) > 0.05])))
+    assert flips <= 2

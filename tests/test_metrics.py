@@ -7,7 +7,15 @@ import math
 import numpy as np
 import pytest
 
-from ballbeam.core.metrics import compute_metrics, settle_time
+from ballbeam.core.metrics import (
+    compute_metrics,
+    dither_hz,
+    input_tv_ratio,
+    largest_step_v,
+    rest_time,
+    settle_time,
+    sign_changes,
+)
 
 
 def _states(theta: np.ndarray, position: np.ndarray) -> np.ndarray:
@@ -53,3 +61,29 @@ def test_overshoot_is_measured_past_zero_on_the_far_side_of_the_start() -> None:
         t, _states(np.zeros(4), np.array([0.1, 0.05, 0.01, 0.0])), np.zeros(4), np.zeros(4), 1.0
     )
     assert no_overshoot.overshoot_mm == 0.0
+
+
+def test_rest_needs_both_bands_to_the_end() -> None:
+    t = np.arange(6) * 0.1
+    x = np.array([0.01, 0.0004, 0.0006, 0.0001, 0.0, 0.0])
+    theta = np.radians([0.0, 0.0, 0.0, 0.6, 0.2, 0.0])
+    # x leaves 0.5 mm at index 2, θ leaves 0.5° at index 3: at rest from index 4
+    assert rest_time(t, _states(theta, x)) == pytest.approx(0.4)
+    assert rest_time(t, _states(np.zeros(6), np.full(6, 0.001))) is None
+    metrics = compute_metrics(
+        t, _states(theta, x), np.zeros(6), np.zeros(6), 1.0, minimum_time_s=0.2
+    )
+    assert metrics.rest_ratio == pytest.approx(2.0)
+
+
+def test_chatter_figures() -> None:
+    plan = np.array([5.0, 5.0, 5.0, -5.0, -5.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    command = plan + np.array([0, 0.1, 0, 0, 0, 0.3, -0.3, 0.3, 0, 0])
+    assert input_tv_ratio(command, plan) == pytest.approx(np.abs(np.diff(command)).sum() / 15.0)
+    # the plan switches at steps 2 (2→3) and 4 (4→5): steps 0..6 are within two periods of
+    # them (the 0.6 V flips at 5 and 6 among them); step 7 (0.3 V back to 0) is the largest left
+    assert largest_step_v(command, plan) == pytest.approx(0.3)
+    assert sign_changes(np.array([0.2, 0.0, -0.1, -0.2, 0.0, 0.3])) == 2  # zeros are skipped
+    t = np.arange(3000) * 1e-3
+    u = np.where(np.arange(3000) % 100 < 50, 0.2, -0.2)  # 10 Hz square wave
+    assert dither_hz(t, u) == pytest.approx(20.0, abs=1.0)

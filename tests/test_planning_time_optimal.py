@@ -464,3 +464,26 @@ def test_highspy_gives_what_linprog_gives(
     assert calls > 0
     assert by_linprog.n_steps == plan_margin.n_steps
     assert np.array_equal(by_linprog.input_v, plan_margin.input_v)
+
+
+def test_a_start_beyond_the_path_bound_leaves_it_at_full_voltage_first() -> None:
+    """The paper's −52° start with a path inside ±51.5°: a lead-in at +U, then the minimum-time
+    path from where it ends; the whole plan comes to rest and stays within ±52° throughout."""
+    from ballbeam.assembly import design_model
+    from ballbeam.config import load_config
+    from ballbeam.core.planning.time_optimal import plan_time_optimal_from_outside
+
+    model = design_model(load_config(None))
+    start = np.array([math.radians(-52.0), 0.0, 0.0, 0.195])
+    bound = math.radians(51.5)
+    plan = plan_time_optimal_from_outside(model, start, voltage_limit_v=4.75, theta_max_rad=bound)
+    lead = int(np.argmax(plan.input_v != 4.75))
+    assert lead > 0 and np.all(plan.input_v[:lead] == 4.75)
+    assert np.all(np.abs(plan.input_v) <= 4.75 + 1e-9)
+    samples = plan.sample(np.arange(0.0, plan.duration_s, 1e-4))
+    assert np.all(np.abs(samples.states[:, 0]) <= math.radians(52.0) + 1e-12)
+    after = samples.time_s >= lead * plan.step_s
+    assert np.all(np.abs(samples.states[after, 0]) <= bound + 1e-9)
+    np.testing.assert_allclose(plan.grid_states[-1], 0.0, atol=1e-7)
+    # it costs little: the paper's start is 1.746 s at the full 5 V and 52°
+    assert plan.duration_s < 1.746 * 1.015

@@ -115,3 +115,24 @@ def test_band_limited_noise_has_the_configured_std_and_correlation() -> None:
     assert samples[1000:].std() == pytest.approx(1e-3, rel=0.05)
     lag1 = np.corrcoef(samples[1000:-1], samples[1001:])[0, 1]
     assert lag1 == pytest.approx(params.noise_pole, abs=0.02)
+
+
+def test_peak_angle_over_the_physics_steps_of_a_period() -> None:
+    """advance_with_peak returns the same state as advance and the largest |θ| at any of its
+    substeps: a servo driven to the limit and braked peaks between the period's ends."""
+    import math
+
+    from ballbeam.assembly import plant_parameters
+    from ballbeam.config import load_config
+    from ballbeam.core.plant import PlantPhysics
+
+    for extra in ([], ["plant.nonlinear_ball=true"]):
+        physics = PlantPhysics(plant_parameters(load_config(None, extra)))
+        state = np.array([math.radians(50.0), 3.0, 0.0, 0.0])  # moving up at 3 rad/s
+        end, peak = physics.advance_with_peak(state, -5.0, 100)  # braked over 10 ms
+        np.testing.assert_allclose(end, physics.advance(state, -5.0, 100), rtol=0, atol=0)
+        fine = [state]
+        for _ in range(100):
+            fine.append(physics.advance(fine[-1], -5.0, 1))
+        assert peak == pytest.approx(max(abs(s[0]) for s in fine), rel=1e-9)
+        assert peak > max(abs(state[0]), abs(end[0]))

@@ -111,7 +111,7 @@ def good_arrays(design: ControllerDesign) -> dict[str, np.ndarray]:
     [
         ({"gains": np.zeros((10, 3))}, "gains"),
         ({"offset_v": np.array([np.nan])}, "not finite"),
-        ({"format_version": np.array(2)}, "format 2"),
+        ({"format_version": np.array(99)}, "format 99"),
         ({"observer_L": np.zeros((2, 4))}, "observer"),
         ({"period_s": np.zeros(3)}, "scalar"),
         ({"code": np.array([print], dtype=object)}, "unreadable"),  # would need pickle

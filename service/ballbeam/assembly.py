@@ -11,15 +11,16 @@ from dataclasses import dataclass
 import numpy as np
 
 from ballbeam.config import Config
-from ballbeam.core.control import ControllerDesign, ObserverLaw
-from ballbeam.core.guard import make_angle_guard
+from ballbeam.core.control import ControllerDesign, ObserverLaw, RestGains
+from ballbeam.core.guard import AngleGuard, make_angle_guard, make_soft_cap
 from ballbeam.core.metrics import RunMetrics, compute_metrics
 from ballbeam.core.model import LinearModel, PhysicalConstants
 from ballbeam.core.observer import design_observer
 from ballbeam.core.planning.plan import Plan
 from ballbeam.core.plant import ADC_COUNT_LIMIT, EmulatedPlant, PlantPhysics
 from ballbeam.core.simulate import SimulationTrace, simulate_closed_loop
-from ballbeam.core.tracker import synthesize_discrete
+from ballbeam.core.tracker import stationary_gain, synthesize_discrete
+from ballbeam.errors import ConfigError, PlanningError
 
 DEFAULT_POSITION_NOISE_M = 2e-4
 
@@ -57,20 +58,36 @@ def make_plan(config: Config) -> Plan:
         return plan_rate_limited(
             constants, theta_max_rad, config.plan.servo_rate_limit_rad_s, start
         )
-    from ballbeam.core.planning.time_optimal import plan_time_optimal
+    from ballbeam.core.planning.time_optimal import plan_time_optimal_from_outside
 
-    return plan_time_optimal(
+    # The margin keeps the path off the limit from every start: one on the limit (the paper's
+    # −52°) first leaves it at full voltage (the tracker needs the room there too).
+    return plan_time_optimal_from_outside(
         design_model(config),
         start,
         voltage_limit_v=config.limits.voltage_v - config.plan.voltage_margin_v,
-        # The margin keeps the path off the limit, but never excludes the start itself
-        # (the paper starts exactly on −52°): then the path may touch the start's angle.
-        theta_max_rad=min(
-            theta_max_rad,
-            max(theta_max_rad - math.radians(config.plan.theta_margin_deg), abs(float(start[0]))),
-        ),
+        theta_max_rad=theta_max_rad - math.radians(config.plan.theta_margin_deg),
         step_s=config.plan.step_s or config.controller.period_s,
     )
+
+
+def minimum_time_s(config: Config) -> float | None:
+    """T*: the full model's minimum time from the config's start to rest at the origin under
+    the full voltage and angle limits (the time-optimal planner with zero margins); None
+    where no such path exists (a start beyond the limit)."""
+    from ballbeam.core.planning.time_optimal import plan_time_optimal
+
+    try:
+        plan = plan_time_optimal(
+            design_model(config),
+            config.initial.state(),
+            voltage_limit_v=config.limits.voltage_v,
+            theta_max_rad=config.limits.theta_rad,
+            step_s=config.controller.period_s,
+        )
+    except PlanningError:
+        return None
+    return plan.duration_s
 
 
 def controller_design(config: Config, plan: Plan | None = None) -> ControllerDesign:
@@ -88,44 +105,42 @@ def controller_design(config: Config, plan: Plan | None = None) -> ControllerDes
         terminal=tracker_cfg.terminal,
         input_reference=tracker_cfg.input_reference,
     )
+    # The plan's end: from here the reference is rest at the origin.
+    rest_from_cycle = math.ceil(plan.duration_s / period_s - 1e-9)
+    offset_v = np.array(tracker.offset_v)
+    rest_gains = None
+    if tracker_cfg.rest_regulator:
+        rest_gains = _rest_gains(config, model, rest_from_cycle)
+        offset_v[min(rest_from_cycle, offset_v.shape[0]) :] = 0.0
     sensors = config.sensors
     constants = physical_constants(config)
     encoder_step_rad = sensors.encoder_step_rad
     adc_step_m = sensors.adc_step_m(constants.beam_length_m)
     observer_cfg = config.observer
-    observer = design_observer(
-        model.discretize(period_s),
-        input_noise_v=observer_cfg.input_noise_v,
-        ball_noise_m_s2=observer_cfg.ball_noise_m_s2,
-        angle_noise_rad=observer_cfg.angle_noise_rad or encoder_step_rad / math.sqrt(12.0),
-        position_noise_m=observer_cfg.position_noise_m
-        or math.hypot(DEFAULT_POSITION_NOISE_M, adc_step_m / math.sqrt(12.0)),
+    angle_noise_rad = observer_cfg.angle_noise_rad or encoder_step_rad / math.sqrt(12.0)
+    position_noise_m = observer_cfg.position_noise_m or math.hypot(
+        DEFAULT_POSITION_NOISE_M, adc_step_m / math.sqrt(12.0)
     )
-    guard = None
-    if config.controller.theta_guard:
-        constants_alpha = constants.alpha
-        # In real time a command lands some time after its sensor sample; the guard then
-        # judges the state that far ahead, not just one period.
-        latency_s = (
-            config.controller.theta_guard_latency_us * 1e-6
-            if config.run.mode == "realtime"
-            else 0.0
+
+    def observer_law(input_noise_v: float, ball_noise_m_s2: float) -> ObserverLaw:
+        gains = design_observer(
+            model.discretize(period_s),
+            input_noise_v=input_noise_v,
+            ball_noise_m_s2=ball_noise_m_s2,
+            angle_noise_rad=angle_noise_rad,
+            position_noise_m=position_noise_m,
         )
-        discrete = model.discretize(period_s + latency_s)
-        brake_v = config.controller.theta_guard_brake_v or max(
-            0.5 * config.limits.voltage_v, config.limits.voltage_v - config.plant.deadzone_v
+        return ObserverLaw.from_arrays(gains.Ad, gains.Bd, gains.C, gains.L)
+
+    observer = observer_law(observer_cfg.input_noise_v, observer_cfg.ball_noise_m_s2)
+    rest_observer = None
+    if observer_cfg.rest_filter:
+        # After the plan a quiet ball: a filter that smooths the sensor noise harder than the
+        # tracking one, which must follow a fast path, can.
+        rest_observer = observer_law(
+            observer_cfg.rest_input_noise_v, observer_cfg.rest_ball_noise_m_s2
         )
-        guard = make_angle_guard(
-            theta_limit_rad=math.radians(
-                config.limits.theta_deg - config.controller.theta_guard_margin_deg
-            ),
-            alpha=constants_alpha,
-            alpha_beta=constants_alpha * constants.beta,
-            brake_v=brake_v,
-            voltage_limit_v=config.limits.voltage_v,
-            Ad=discrete.Ad,
-            Bd=discrete.Bd,
-        )
+    guard = _angle_guard(config, model) if config.controller.theta_guard else None
     n_reference = tracker.K.shape[0]
     samples = plan.sample(np.arange(n_reference) * period_s)
     initial = config.initial.state()
@@ -133,18 +148,96 @@ def controller_design(config: Config, plan: Plan | None = None) -> ControllerDes
         period_s=tracker.period_s,
         plan_duration_s=float(plan.duration_s),
         gains=np.array(tracker.K[:, 0, :]),
-        offset_v=np.array(tracker.offset_v),
+        offset_v=offset_v,
         final_gain=np.array(tracker.K_final[0]),
         reference_states=np.array(samples.states),
         reference_input_v=np.array(samples.input_v),
-        observer=ObserverLaw.from_arrays(observer.Ad, observer.Bd, observer.C, observer.L),
+        observer=observer,
         guard=guard,
         voltage_limit_v=config.limits.voltage_v,
+        deadband_v=config.controller.command_deadband_v,
+        deadzone_v=config.controller.deadzone_compensation_v,
+        rest_from_cycle=rest_from_cycle,
+        rest_observer=rest_observer,
+        rest_gains=rest_gains,
         initial_state=(float(initial[0]), float(initial[1]), float(initial[2]),
                        float(initial[3])),
         angle_per_count=constants.angle_sensor_gain * encoder_step_rad,
         position_per_count=constants.position_sensor_gain * adc_step_m,
     )
+
+
+def _rest_gains(config: Config, model: LinearModel, from_cycle: int) -> RestGains:
+    tracker_cfg = config.tracker
+    period_s = config.controller.period_s
+    if not (
+        0.0 <= tracker_cfg.rest_theta_near_deg < tracker_cfg.rest_theta_far_deg
+        and 0.0 <= tracker_cfg.rest_position_near_m < tracker_cfg.rest_position_far_m
+    ):
+        raise ConfigError("tracker rest bands must be 0 <= near < far")
+    rest_gain, _ = stationary_gain(
+        model, np.diag(tracker_cfg.rest_q), np.array([[tracker_cfg.rest_r]]), period_s
+    )
+    far_gain = None
+    if tracker_cfg.far_q is not None:
+        far_gain = _row4(stationary_gain(
+            model, np.diag(tracker_cfg.far_q), np.array([[tracker_cfg.far_r]]), period_s
+        )[0][0])
+    return RestGains(
+        gain=_row4(rest_gain[0]),
+        far_gain=far_gain,
+        from_cycle=max(from_cycle, 0),
+        blend_cycles=max(round(tracker_cfg.rest_blend_s / period_s), 1),
+        theta_near_rad=math.radians(tracker_cfg.rest_theta_near_deg),
+        theta_far_rad=math.radians(tracker_cfg.rest_theta_far_deg),
+        position_near_m=tracker_cfg.rest_position_near_m,
+        position_far_m=tracker_cfg.rest_position_far_m,
+    )
+
+
+def _angle_guard(config: Config, model: LinearModel) -> AngleGuard:
+    constants = physical_constants(config)
+    controller = config.controller
+    alpha, alpha_beta = constants.alpha, constants.alpha * constants.beta
+    realtime = config.run.mode == "realtime"
+    # In real time a command lands some time after its sensor sample; the guard then judges
+    # the state that far ahead, not just one period. And a stalled host can hold a command for
+    # a few periods: both limits keep a little more room there.
+    latency_s = controller.theta_guard_latency_us * 1e-6 if realtime else 0.0
+    extra_deg = controller.theta_guard_realtime_margin_deg if realtime else 0.0
+    discrete = model.discretize(controller.period_s + latency_s)
+    brake_v = controller.theta_guard_brake_v or max(
+        0.5 * config.limits.voltage_v, config.limits.voltage_v - config.plant.deadzone_v
+    )
+    soft = None
+    if controller.soft_guard:
+        soft = make_soft_cap(
+            theta_limit_rad=math.radians(
+                config.limits.theta_deg - controller.soft_guard_margin_deg - extra_deg
+            ),
+            alpha=alpha,
+            alpha_beta=alpha_beta,
+            brake_v=controller.soft_guard_brake_v,
+            zone_gain_per_s=controller.soft_guard_zone_gain_per_s,
+            rate_gain_per_s=controller.soft_guard_rate_gain_per_s,
+        )
+    return make_angle_guard(
+        theta_limit_rad=math.radians(
+            config.limits.theta_deg - controller.theta_guard_margin_deg - extra_deg
+        ),
+        alpha=alpha,
+        alpha_beta=alpha_beta,
+        brake_v=brake_v,
+        voltage_limit_v=config.limits.voltage_v,
+        Ad=discrete.Ad,
+        Bd=discrete.Bd,
+        soft=soft,
+    )
+
+
+def _row4(values: np.ndarray) -> tuple[float, float, float, float]:
+    a, b, c, d = (float(value) for value in values)
+    return (a, b, c, d)
 
 
 def plant_parameters(config: Config) -> EmulatedPlant:
@@ -206,5 +299,8 @@ def run_offline(config: Config) -> OfflineRun:
         trace.voltage_v,
         trace.reference_states[:, 3],
         config.limits.theta_rad,
+        reference_input_v=trace.reference_input_v,
+        minimum_time_s=minimum_time_s(config),
+        peak_abs_theta_rad=trace.peak_abs_theta_rad,
     )
     return OfflineRun(design=design, trace=trace, metrics=metrics)

@@ -90,7 +90,7 @@ class PlanSection(_Section):
         9.325, gt=0, le=100, description="rate_limited: bound on |θ̇| (paper: 9.325 or 8)"
     )
     voltage_margin_v: float = Field(
-        0.5, ge=0, description="time_optimal: voltage kept back for the tracker's corrections"
+        0.25, ge=0, description="time_optimal: voltage kept back for the tracker's corrections"
     )
     theta_margin_deg: float = Field(
         0.5, ge=0, le=20, description="time_optimal: the path stays this far inside ±θ limit"
@@ -112,9 +112,30 @@ class TrackerSection(_Section):
         description="penalise (u - u_d) with the plan's input (feedforward) or u itself (paper)",
     )
 
-    @field_validator("q")
+    rest_regulator: bool = Field(
+        True, description="after the plan, gentler gains near rest (rest_q, rest_r)"
+    )
+    rest_q: tuple[float, ...] = Field(
+        (1000.0, 0.0, 0.0, 30000.0), description="Q of the regulator that holds rest"
+    )
+    rest_r: float = Field(1.0, gt=0, description="R of the regulator that holds rest")
+    rest_blend_s: float = Field(
+        0.05, ge=0, le=10, description="after the plan: gains blend to the rest regulator's"
+    )
+    far_q: tuple[float, ...] | None = Field(
+        None, description="after the plan, Q of the gains far from rest (None: the tracking q)"
+    )
+    far_r: float = Field(0.01, gt=0, description="after the plan, R of the gains far from rest")
+    rest_theta_near_deg: float = Field(1.0, ge=0, description="rest gains alone within |θ| <")
+    rest_theta_far_deg: float = Field(3.0, gt=0, description="tracking gains alone beyond |θ| >")
+    rest_position_near_m: float = Field(0.001, ge=0, description="rest gains alone within |x| <")
+    rest_position_far_m: float = Field(0.003, gt=0, description="tracking gains beyond |x| >")
+
+    @field_validator("q", "rest_q", "far_q")
     @classmethod
-    def _q_positive_semidefinite(cls, q: tuple[float, ...]) -> tuple[float, ...]:
+    def _q_positive_semidefinite(cls, q: tuple[float, ...] | None) -> tuple[float, ...] | None:
+        if q is None:
+            return q
         if len(q) != 4:
             raise ValueError(f"Q needs 4 diagonal entries for (θ, θ̇, ẋ, x), got {len(q)}")
         if any(not math.isfinite(value) or value < 0 for value in q):
@@ -127,6 +148,13 @@ class ObserverSection(_Section):
         0.3, gt=0, description="std of the unmodelled input (dead zone, friction) per sample"
     )
     ball_noise_m_s2: float = Field(0.05, gt=0, description="std of unmodelled ball acceleration")
+    rest_filter: bool = Field(
+        True, description="after the plan, a quieter filter (the rest_* noise levels)"
+    )
+    rest_input_noise_v: float = Field(0.1, gt=0, description="rest filter: input noise std")
+    rest_ball_noise_m_s2: float = Field(
+        0.005, gt=0, description="rest filter: unmodelled ball acceleration std"
+    )
     angle_noise_rad: float | None = Field(
         None, gt=0, description="angle measurement noise std; default from the encoder step"
     )
@@ -157,7 +185,7 @@ class ControllerSection(_Section):
         True, description="cap the voltage so the servo can always stop inside ±θ limit"
     )
     theta_guard_margin_deg: float = Field(
-        0.3, ge=0, le=10, description="the guard stops the servo this far inside the limit"
+        0.01, ge=0, le=10, description="the guard stops the servo this far inside the limit"
     )
     theta_guard_latency_us: int = Field(
         1000,
@@ -167,6 +195,48 @@ class ControllerSection(_Section):
     )
     theta_guard_brake_v: float | None = Field(
         None, gt=0, description="braking voltage the guard counts on; default V − dead zone"
+    )
+    theta_guard_realtime_margin_deg: float = Field(
+        0.3,
+        ge=0,
+        le=10,
+        description=(
+            "real time: extra margin of both guards (a stalled host can hold a command for "
+            "several periods)"
+        ),
+    )
+    soft_guard: bool = Field(
+        True, description="a smooth cap on the servo rate near the limit, inside the hard guard"
+    )
+    soft_guard_margin_deg: float = Field(
+        0.05, ge=0, le=10, description="the soft cap stops the servo this far inside the limit"
+    )
+    soft_guard_brake_v: float = Field(
+        4.75, gt=0, description="braking voltage of the soft cap's braking curve"
+    )
+    soft_guard_zone_gain_per_s: float = Field(
+        250.0, gt=0, description="allowed rate = gain × gap near the soft limit"
+    )
+    soft_guard_rate_gain_per_s: float = Field(
+        40.0, gt=0, description="how hard the soft cap pulls the rate back to the allowed rate"
+    )
+    command_deadband_v: float = Field(
+        0.05, ge=0, le=5, description="demands within this band are sent as 0 V"
+    )
+    deadzone_compensation_v: float = Field(
+        0.1,
+        ge=0,
+        le=5,
+        description="the motor dead zone the controller adds back (beyond the band) and models",
+    )
+    bound_tolerance_deg: float = Field(
+        0.5,
+        ge=0,
+        le=10,
+        description=(
+            "a run breaks its safety bound (exit 1) when the plant's |θ| passes "
+            "limits.theta_deg by more than this (paths that ride the limit touch it)"
+        ),
     )
     spin_us: int = Field(200, ge=0, le=10_000, description="busy-wait before each deadline")
     cpu: int | None = Field(
@@ -236,7 +306,7 @@ class SensorsSection(_Section):
 
 
 class RunSection(_Section):
-    duration_s: float = Field(4.0, gt=0, le=86400)
+    duration_s: float = Field(5.0, gt=0, le=86400)
     mode: Literal["lockstep", "realtime"] = "lockstep"
     log_dir: str = Field("logs", min_length=1, description="where run MCAP files go")
     lockstep_poll_us: int = Field(

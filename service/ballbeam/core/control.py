@@ -46,12 +46,51 @@ class ObserverLaw:
 
 
 @dataclass(frozen=True)
+class RestGains:
+    """Gentler gains that take over near rest after the plan, from cycle ``from_cycle`` on.
+
+    The tracking gains are stiff so that the ball follows a fast plan and recovers from model
+    error; at rest the same gains turn 0.2 mm of sensor noise into servo motion. The weight of
+    the stiff gains, w in [0, 1], is the largest of a time ramp 1 → 0 over ``blend_cycles``
+    after ``from_cycle`` and the state's distance from rest, (|θ| − near)/(far − near) and
+    (|x| − near)/(far − near): K = K_rest + w (K_stiff − K_rest), continuous in the state.
+    ``far_gain``: the stiff gains after the plan (None: the tracking schedule's own).
+    """
+
+    gain: Row4
+    far_gain: Row4 | None
+    from_cycle: int
+    blend_cycles: int
+    theta_near_rad: float
+    theta_far_rad: float
+    position_near_m: float
+    position_far_m: float
+
+    def stiff_weight(self, cycle: int, estimate: Row4) -> float:
+        ramp = 1.0 - (cycle - self.from_cycle) / self.blend_cycles
+        theta = (abs(estimate[0]) - self.theta_near_rad) / (
+            self.theta_far_rad - self.theta_near_rad
+        )
+        position = (abs(estimate[3]) - self.position_near_m) / (
+            self.position_far_m - self.position_near_m
+        )
+        return min(max(max(ramp, theta, position), 0.0), 1.0)
+
+
+@dataclass(frozen=True)
 class ControllerDesign:
     """Everything a cycle needs, computed once before the run (and recorded with it).
 
     gains (N, 4) and offset_v (N,): the tracker's ``u_k = offset_v[k] − gains[k]·x̂`` for
     k < N, then ``u = −final_gain·x̂``. reference_states (N, 4), reference_input_v (N,): x_d
     and u_d at the cycle instants (recorded beside each command; rest at the origin beyond N).
+
+    After the plan (cycle ``rest_from_cycle`` on) the observer may switch to gains designed for
+    a quiet ball (``rest_observer``), and the tracker blend into gentler ones (``rest_gains``).
+    The command goes through a dead-zone compensation with a band: demands within
+    ±``deadband_v`` are sent as 0 V (noise at rest does not flip the command's sign), larger
+    ones are shifted by ``deadzone_v − deadband_v``, so that a motor with a ``deadzone_v`` dead
+    zone receives the demand less the band; the observer predicts with that modelled drive.
     """
 
     period_s: float
@@ -64,6 +103,11 @@ class ControllerDesign:
     observer: ObserverLaw
     guard: AngleGuard | None  # None: clamp to ±V only
     voltage_limit_v: float
+    deadband_v: float
+    deadzone_v: float
+    rest_from_cycle: int
+    rest_observer: ObserverLaw | None
+    rest_gains: RestGains | None
     initial_state: Row4  # the planned start: supplies the rates no sensor measures
     angle_per_count: float  # measurement units (57·θ) per encoder count
     position_per_count: float  # measurement units (100·x) per ADC count
@@ -109,13 +153,46 @@ class ControllerDesign:
 
     def tracker_input(self, cycle: int, estimate: Row4) -> float:
         """The tracker's demand [V] at ``cycle`` (unclamped); beyond the horizon the
-        stationary regulator."""
+        stationary regulator; after the plan blended with the rest gains."""
         x0, x1, x2, x3 = estimate
-        if cycle < self.n_steps:
-            k0, k1, k2, k3 = self._gain_rows[cycle]
-            return self._offsets[cycle] - (k0 * x0 + k1 * x1 + k2 * x2 + k3 * x3)
-        k0, k1, k2, k3 = self._final_row
-        return -(k0 * x0 + k1 * x1 + k2 * x2 + k3 * x3)
+        inside = cycle < self.n_steps
+        offset = self._offsets[cycle] if inside else 0.0
+        k0, k1, k2, k3 = self._gain_rows[cycle] if inside else self._final_row
+        rest = self.rest_gains
+        if rest is not None and cycle >= rest.from_cycle:
+            if rest.far_gain is not None:
+                k0, k1, k2, k3 = rest.far_gain
+            w = rest.stiff_weight(cycle, estimate)
+            r0, r1, r2, r3 = rest.gain
+            k0, k1, k2, k3 = r0 + w * (k0 - r0), r1 + w * (k1 - r1), r2 + w * (k2 - r2), (
+                r3 + w * (k3 - r3)
+            )
+        return offset - (k0 * x0 + k1 * x1 + k2 * x2 + k3 * x3)
+
+    def observer_at(self, cycle: int) -> ObserverLaw:
+        if self.rest_observer is not None and cycle >= self.rest_from_cycle:
+            return self.rest_observer
+        return self.observer
+
+    def compensated(self, voltage_v: float) -> tuple[float, float]:
+        """The command sent for a demand, and the drive the motor is believed to receive."""
+        band, deadzone, limit = self.deadband_v, self.deadzone_v, self.voltage_limit_v
+        if voltage_v > band:
+            sent = min(voltage_v + (deadzone - band), limit)
+            return sent, (sent - deadzone if sent > deadzone else 0.0)
+        if voltage_v < -band:
+            sent = max(voltage_v - (deadzone - band), -limit)
+            return sent, (sent + deadzone if sent < -deadzone else 0.0)
+        return 0.0, 0.0
+
+    def modelled_drive_v(self, sent_v: float) -> float:
+        """The drive a motor with the modelled dead zone receives for a sent voltage."""
+        deadzone = self.deadzone_v
+        if sent_v > deadzone:
+            return sent_v - deadzone
+        if sent_v < -deadzone:
+            return sent_v + deadzone
+        return 0.0
 
 
 @dataclass(frozen=True)
@@ -184,14 +261,16 @@ def control_cycle(
     elif reading is None:
         estimate = state.prediction  # coast on the model
     else:
-        estimate = correct(design.observer, state.prediction, design.measurement(reading))
+        observer = design.observer_at(state.cycle)
+        estimate = correct(observer, state.prediction, design.measurement(reading))
     requested_v = design.tracker_input(state.cycle, estimate)
     if design.guard is not None:
-        voltage_v = guarded_voltage(design.guard, estimate, requested_v)
+        capped_v = guarded_voltage(design.guard, estimate, requested_v)
     else:
         limit = design.voltage_limit_v
-        voltage_v = min(max(requested_v, -limit), limit)
-    prediction = predict(design.observer, estimate, voltage_v)
+        capped_v = min(max(requested_v, -limit), limit)
+    voltage_v, drive_v = design.compensated(capped_v)
+    prediction = predict(design.observer, estimate, drive_v)
     return (
         ControllerState(cycle=state.cycle + 1, prediction=prediction),
         CycleOutput(voltage_v, requested_v, estimate, reading is not None),
@@ -206,8 +285,9 @@ def coast_cycles(
     if state.prediction is None:
         raise ValueError("cannot coast before the first measurement")
     prediction = state.prediction
+    drive_v = design.modelled_drive_v(held_voltage_v)
     for _ in range(count):
-        prediction = predict(design.observer, prediction, held_voltage_v)
+        prediction = predict(design.observer, prediction, drive_v)
     return ControllerState(cycle=state.cycle + count, prediction=prediction)
 
 

@@ -1,14 +1,29 @@
-"""Servo-angle guard: caps the voltage so the servo can always stop before ±θ_limit.
+"""Servo-angle guard: keeps the servo inside ±θ_limit without chattering on the limit arcs.
 
-The safe set is {θ + d(θ̇) <= θ_limit} (and its mirror), where d is the exact stopping
-distance of the motor model θ̈ = −αβ·θ̇ − α·V_brake under full braking. Each cycle the
-largest (smallest) voltage whose one-period successor stays in the safe set is found; the
-successor is linear in u and d is increasing, so the bound is a monotone 1-D root.
+Two layers, both caps on the voltage the tracker asks for (mirrored for the lower limit):
+
+* **Soft cap** (smooth, the one that acts): the servo rate is held below an allowed rate
+  ω_a(gap) that vanishes at a soft limit θ_s, gap = θ_s − θ. Far out ω_a is the exact
+  full-braking curve (the rate from which braking at V_soft stops the servo at θ_s), near θ_s
+  it is k·gap (a linear zone, so the cap is a plain PD law there instead of a corner). The cap
+  is the voltage that makes θ̇ follow ω_a with a first-order rate loop of gain κ::
+
+      α·u_cap = αβ·θ̇ − ω_a'(gap)·θ̇ + κ (ω_a − θ̇)
+
+  It is continuous in the state (piecewise linear), so estimate noise moves it by small
+  amounts instead of flipping it between ±V; on the braking curve it equals −V_soft.
+* **Hard barrier** (the safety net, idle in normal running): the safe set is
+  {θ + d(θ̇) <= θ_limit}, d the exact stopping distance of the motor model
+  θ̈ = −αβ·θ̇ − α·V_brake under full braking. Each cycle the largest (smallest) voltage whose
+  one-period successor stays in the safe set is found; the successor is linear in u and d is
+  increasing, so the bound is a monotone 1-D root. It is a dead-beat law: it acts only if the
+  soft cap was overrun (model error, a disturbance).
 
 The cycle runs in plain float arithmetic (a recorded run must replay bit for bit on any CPU,
-and libm's logarithm is not the same on every machine): d comes from a table computed at
-design time and interpolated linearly. d is convex, so the chords lie above it: the table
-never promises a shorter stop than the motor gives.
+and libm's logarithm is not the same on every machine): d and ω_a come from tables computed at
+design time and interpolated linearly. d is convex, so its chords lie above it: the table
+never promises a shorter stop than the motor gives; ω_a (d's inverse) is concave, so its
+chords lie below it: the allowed rate is never more than the braking curve's.
 """
 
 from __future__ import annotations
@@ -21,8 +36,23 @@ import numpy as np
 BISECTION_STEPS = 40
 STOPPING_TABLE_STEP_RAD_S = 0.01  # interpolation error ≤ step²/(8·α·V_brake) ≈ 2e-8 rad
 STOPPING_TABLE_SLEW_MULTIPLE = 3.0  # the table covers 3× the motor's top speed
+ALLOWED_RATE_POINTS = 256  # ω_a(gap) over gaps 0..2·θ_s
 
 Row4 = tuple[float, float, float, float]
+
+
+@dataclass(frozen=True)
+class SoftCap:
+    """The smooth cap: ``allowed_rate_rad_s[i]`` = ω_a(i·gap_step_rad) on the braking curve at
+    V_soft (beyond the table: its last value); the motor model α, αβ."""
+
+    theta_limit_rad: float  # θ_s: where the allowed rate reaches zero
+    zone_gain_per_s: float  # k: ω_a = k·gap near θ_s
+    rate_gain_per_s: float  # κ: how hard the rate is pulled back onto ω_a
+    alpha: float
+    alpha_beta: float
+    gap_step_rad: float
+    allowed_rate_rad_s: tuple[float, ...]
 
 
 @dataclass(frozen=True)
@@ -45,6 +75,7 @@ class AngleGuard:
     rate_step_rad_s: float
     stopping_rad: tuple[float, ...]
     beyond_slope_s: float
+    soft: SoftCap | None = None
 
 
 def exact_stopping_distance_rad(
@@ -69,6 +100,7 @@ def make_angle_guard(
     voltage_limit_v: float,
     Ad: np.ndarray,
     Bd: np.ndarray,
+    soft: SoftCap | None = None,
 ) -> AngleGuard:
     """The guard for a motor model (α, αβ), a braking voltage and a look-ahead (Ad, Bd)."""
     top_rate = STOPPING_TABLE_SLEW_MULTIPLE * voltage_limit_v * alpha / alpha_beta
@@ -85,7 +117,73 @@ def make_angle_guard(
         rate_step_rad_s=STOPPING_TABLE_STEP_RAD_S,
         stopping_rad=tuple(table.tolist()),
         beyond_slope_s=1.0 / alpha_beta,
+        soft=soft,
     )
+
+
+def make_soft_cap(
+    *,
+    theta_limit_rad: float,
+    alpha: float,
+    alpha_beta: float,
+    brake_v: float,
+    zone_gain_per_s: float,
+    rate_gain_per_s: float,
+) -> SoftCap:
+    """The soft cap at ±``theta_limit_rad``: ω_a(gap) solves d(ω) = gap on a uniform gap grid
+    (d is increasing: by bisection here, at design time)."""
+    gap_step = 2.0 * theta_limit_rad / (ALLOWED_RATE_POINTS - 1)
+    a, c = alpha_beta, alpha * brake_v
+
+    def distance(rate: float) -> float:  # d(ω), design time only
+        return rate / a - (c / (a * a)) * math.log1p(a * rate / c)
+
+    allowed = []
+    for i in range(ALLOWED_RATE_POINTS):
+        gap = i * gap_step
+        low, high = 0.0, 1.0
+        while distance(high) < gap:
+            high *= 2.0
+        for _ in range(80):
+            middle = 0.5 * (low + high)
+            if distance(middle) <= gap:
+                low = middle
+            else:
+                high = middle
+        allowed.append(low)
+    return SoftCap(
+        theta_limit_rad=float(theta_limit_rad),
+        zone_gain_per_s=float(zone_gain_per_s),
+        rate_gain_per_s=float(rate_gain_per_s),
+        alpha=float(alpha),
+        alpha_beta=float(alpha_beta),
+        gap_step_rad=float(gap_step),
+        allowed_rate_rad_s=tuple(allowed),
+    )
+
+
+def soft_cap_v(soft: SoftCap, theta_rad: float, rate_rad_s: float) -> float:
+    """The soft cap on u toward +θ_s for the state (θ, θ̇) (mirror the state for −θ_s)."""
+    gap = soft.theta_limit_rad - theta_rad
+    allowed = soft.zone_gain_per_s * gap
+    slope = soft.zone_gain_per_s
+    if gap > 0.0:
+        table = soft.allowed_rate_rad_s
+        position = gap / soft.gap_step_rad
+        last = len(table) - 1
+        if position < last:
+            index = int(position)
+            low = table[index]
+            rise = table[index + 1] - low
+            curve = low + (position - index) * rise
+            curve_slope = rise / soft.gap_step_rad
+        else:
+            curve, curve_slope = table[last], 0.0
+        if curve < allowed:
+            allowed, slope = curve, curve_slope
+    # θ̈ = −αβ θ̇ + α u is asked to be dω_a/dt + κ (ω_a − θ̇), with dω_a/dt = −ω_a'·θ̇.
+    accel = -slope * rate_rad_s + soft.rate_gain_per_s * (allowed - rate_rad_s)
+    return (soft.alpha_beta * rate_rad_s + accel) / soft.alpha
 
 
 def _row(values: np.ndarray) -> Row4:
@@ -110,8 +208,15 @@ def stopping_distance_rad(guard: AngleGuard, rate_rad_s: float) -> float:
 
 
 def guarded_voltage(guard: AngleGuard, estimate: Row4, requested_v: float) -> float:
-    """``requested_v`` clamped to ±V and to the guard's safe interval for this state."""
+    """``requested_v`` clamped to ±V, to the soft cap and to the hard barrier's safe interval."""
     x0, x1, x2, x3 = estimate
+    limit = guard.voltage_limit_v
+    voltage = min(max(requested_v, -limit), limit)
+    soft = guard.soft
+    if soft is not None:
+        voltage = min(voltage, soft_cap_v(soft, x0, x1))
+        voltage = max(voltage, -soft_cap_v(soft, -x0, -x1))
+        voltage = min(max(voltage, -limit), limit)
     t0, t1, t2, t3 = guard.theta_row
     r0, r1, r2, r3 = guard.rate_row
     # The successor is (free response) + Bd·u; the free part once per cycle.
@@ -126,8 +231,6 @@ def guarded_voltage(guard: AngleGuard, estimate: Row4, requested_v: float) -> fl
         rate = rate_free + rate_per_v * input_v
         return guard.theta_limit_rad - sign * theta - stopping_distance_rad(guard, sign * rate)
 
-    limit = guard.voltage_limit_v
-    voltage = min(max(requested_v, -limit), limit)
     for sign in (1.0, -1.0):
         # Pushing toward the limit on side `sign` means voltage·sign large.
         if margin(voltage, sign) >= 0.0:

@@ -8,6 +8,14 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 SETTLE_BAND_M = 0.002
+# Rest (docs/design.md §6): |x| <= 0.5 mm and |θ| <= 0.5° from that instant to the end of the run.
+REST_POSITION_M = 5e-4
+REST_THETA_RAD = math.radians(0.5)
+DITHER_WINDOW_S = 1.0  # dither is counted over the run's last second
+# A one-period step of u_d above this is the plan's own switch: steps of u next to it are not
+# chatter (the tracker follows the switch within a period or two).
+PLAN_SWITCH_V = 0.5
+PLAN_SWITCH_WINDOW = 2  # periods either side of a plan switch
 # Metrics a scenario may bound in its [expect] table: these and the bench's own figures.
 BENCH_FIGURES = (
     "saturation_fraction",
@@ -30,6 +38,12 @@ class RunMetrics:
     theta_violation_s: float  # time spent with |θ| beyond the limit
     max_abs_u_v: float
     tracking_rms_mm: float  # RMS of x − x_d
+    # Control quality (docs/design.md §6); None where the inputs they need were not given.
+    rest_time_s: float | None = None  # |x| <= 0.5 mm and |θ| <= 0.5° from here on; None: never
+    rest_ratio: float | None = None  # rest time / the true minimum time T* from this start
+    input_tv_ratio: float | None = None  # Σ|Δu| / Σ|Δu_d|
+    dither_hz: float | None = None  # sign changes of u per second over the last second
+    largest_step_v: float | None = None  # largest |Δu| away from the plan's own switches
 
     def as_dict(self) -> dict[str, float | None]:
         return asdict(self)
@@ -45,15 +59,96 @@ def settle_time(time_s: np.ndarray, position_m: np.ndarray, band_m: float) -> fl
     return float(time_s[last + 1])
 
 
+def rest_time(
+    time_s: np.ndarray,
+    true_states: np.ndarray,
+    position_band_m: float = REST_POSITION_M,
+    theta_band_rad: float = REST_THETA_RAD,
+) -> float | None:
+    """First time after which |x| <= position band and |θ| <= angle band to the end; None if
+    the last sample is outside either."""
+    outside = (np.abs(true_states[:, 3]) > position_band_m) | (
+        np.abs(true_states[:, 0]) > theta_band_rad
+    )
+    at_rest = np.flatnonzero(outside)
+    if at_rest.size == 0:
+        return float(time_s[0])
+    last = int(at_rest[-1])
+    if last == len(time_s) - 1:
+        return None
+    return float(time_s[last + 1])
+
+
+def total_variation(values: np.ndarray) -> float:
+    """Σ|Δv| over the sequence."""
+    return float(np.sum(np.abs(np.diff(np.asarray(values, dtype=float)))))
+
+
+def input_tv_ratio(voltage_v: np.ndarray, reference_input_v: np.ndarray) -> float:
+    """Σ|Δu| / Σ|Δu_d|: how much more the command moves than the plan's own input (inf when
+    the plan's input never moves and the command does)."""
+    command = total_variation(voltage_v)
+    plan = total_variation(reference_input_v)
+    if plan == 0.0:
+        return 0.0 if command == 0.0 else math.inf
+    return command / plan
+
+
+def sign_changes(values: np.ndarray) -> int:
+    """How often consecutive non-zero values change sign (exact zeros are skipped)."""
+    signs = np.sign(np.asarray(values, dtype=float))
+    signs = signs[signs != 0.0]
+    return int(np.count_nonzero(signs[1:] != signs[:-1]))
+
+
+def dither_hz(
+    time_s: np.ndarray, voltage_v: np.ndarray, window_s: float = DITHER_WINDOW_S
+) -> float:
+    """Sign changes of u per second over the last ``window_s`` of the run."""
+    last = time_s >= time_s[-1] - window_s + 1e-12
+    span_s = float(time_s[-1] - time_s[last][0]) + float(time_s[-1] - time_s[-2])
+    return sign_changes(voltage_v[last]) / span_s
+
+
+def largest_step_v(voltage_v: np.ndarray, reference_input_v: np.ndarray) -> float:
+    """Largest one-period |Δu| outside ±PLAN_SWITCH_WINDOW periods of a plan switch (a
+    one-period |Δu_d| above PLAN_SWITCH_V)."""
+    steps = np.abs(np.diff(np.asarray(voltage_v, dtype=float)))
+    switches = np.abs(np.diff(np.asarray(reference_input_v, dtype=float))) > PLAN_SWITCH_V
+    near_switch = np.zeros_like(switches)
+    for shift in range(-PLAN_SWITCH_WINDOW, PLAN_SWITCH_WINDOW + 1):
+        near_switch |= np.roll(switches, shift) & _rolled_valid(len(switches), shift)
+    free = steps[~near_switch]
+    return float(free.max()) if free.size else 0.0
+
+
+def _rolled_valid(n: int, shift: int) -> np.ndarray:
+    """Mask of the entries of np.roll(·, shift) that did not wrap around."""
+    valid = np.ones(n, dtype=bool)
+    if shift > 0:
+        valid[:shift] = False
+    elif shift < 0:
+        valid[shift:] = False
+    return valid
+
+
 def compute_metrics(
     time_s: np.ndarray,
     true_states: np.ndarray,
     voltage_v: np.ndarray,
     reference_position_m: np.ndarray,
     theta_limit_rad: float,
+    reference_input_v: np.ndarray | None = None,
+    minimum_time_s: float | None = None,
+    peak_abs_theta_rad: np.ndarray | None = None,
+    voltage_time_s: np.ndarray | None = None,
 ) -> RunMetrics:
     """time_s (N,) increasing; true_states (N, 4); voltage_v commands; reference (N,).
 
+    reference_input_v (N,): the plan's u_d (for the input's total variation and its switches);
+    minimum_time_s: T* from this start (for rest_ratio); peak_abs_theta_rad (N,): the largest
+    |θ| over every physics step of each period (else the samples' |θ|); voltage_time_s: the
+    commands' own times where they are not sampled at time_s (a recorded run).
     Each sample stands for the interval up to the next one (the last for the previous gap)."""
     if len(time_s) < 2:
         raise ValueError("metrics need at least two samples")
@@ -65,13 +160,34 @@ def compute_metrics(
         overshoot_m = float(np.max(np.abs(position)))
     else:
         overshoot_m = max(0.0, float(np.max(-start_sign * position)))
+    rest_s = rest_time(time_s, true_states)
+    peak = (
+        np.abs(theta)
+        if peak_abs_theta_rad is None
+        else np.maximum(np.abs(theta), peak_abs_theta_rad)
+    )
     return RunMetrics(
         settle_time_s=settle_time(time_s, position, SETTLE_BAND_M),
         overshoot_mm=1e3 * overshoot_m,
-        max_abs_theta_deg=math.degrees(float(np.max(np.abs(theta)))),
-        theta_violation_s=float(np.sum(gaps_s[np.abs(theta) > theta_limit_rad])),
+        max_abs_theta_deg=math.degrees(float(np.max(peak))),
+        theta_violation_s=float(np.sum(gaps_s[peak > theta_limit_rad])),
         max_abs_u_v=float(np.max(np.abs(voltage_v))),
         tracking_rms_mm=1e3 * float(np.sqrt(np.mean((position - reference_position_m) ** 2))),
+        rest_time_s=rest_s,
+        rest_ratio=(
+            rest_s / minimum_time_s
+            if rest_s is not None and minimum_time_s is not None and minimum_time_s > 0.0
+            else None
+        ),
+        input_tv_ratio=(
+            None if reference_input_v is None else input_tv_ratio(voltage_v, reference_input_v)
+        ),
+        dither_hz=dither_hz(time_s if voltage_time_s is None else voltage_time_s, voltage_v)
+        if len(voltage_v) >= 2
+        else None,
+        largest_step_v=(
+            None if reference_input_v is None else largest_step_v(voltage_v, reference_input_v)
+        ),
     )
 
 

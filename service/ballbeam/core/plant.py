@@ -74,6 +74,8 @@ class PlantPhysics:
         self._bd = step.Bd[:, 0]
         # n substeps at a held voltage in one product (lock-step advances a whole period).
         self._powers: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        # θ after each of n substeps: rows of Ad^j and bd_j, j = 1..n (the safety check).
+        self._theta_rows: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
     def advance(self, state: np.ndarray, command_v: float, substeps: int) -> np.ndarray:
         """State after ``substeps`` substeps holding ``command_v``."""
@@ -93,6 +95,35 @@ class PlantPhysics:
             state = self._rk4(state, drive_v)
             state = self._apply_stops(state)
         return state
+
+    def advance_with_peak(
+        self, state: np.ndarray, command_v: float, substeps: int
+    ) -> tuple[np.ndarray, float]:
+        """``advance``, and the largest |θ| at any of its physics steps (its end included): the
+        safety promise is per physics step, not per sample."""
+        if not self.params.nonlinear_ball:
+            rows = self._theta_rows.get(substeps)
+            if rows is None:
+                Ad_j, bd_j = np.eye(4), np.zeros(4)
+                theta_rows, theta_per_v = [], []
+                for _ in range(substeps):
+                    Ad_j, bd_j = self._Ad @ Ad_j, self._Ad @ bd_j + self._bd
+                    theta_rows.append(Ad_j[THETA].copy())
+                    theta_per_v.append(bd_j[THETA])
+                rows = self._theta_rows.setdefault(
+                    substeps, (np.array(theta_rows), np.array(theta_per_v))
+                )
+            drive_v = drive_voltage(self.params, command_v)
+            result = self.advance(state, command_v, substeps)
+            peak = float(np.max(np.abs(rows[0] @ state + rows[1] * drive_v))) if substeps else 0.0
+            # The hard stop may hold θ below the free motion: the larger figure is kept.
+            return result, max(peak, abs(float(result[THETA])))
+        drive_v = drive_voltage(self.params, command_v)
+        peak = 0.0
+        for _ in range(substeps):
+            state = self._apply_stops(self._rk4(state, drive_v))
+            peak = max(peak, abs(float(state[THETA])))
+        return state, peak
 
     def _derivative(self, state: np.ndarray, drive_v: float) -> np.ndarray:
         p = self.params

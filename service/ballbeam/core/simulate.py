@@ -24,7 +24,8 @@ from ballbeam.core.plant import (
 class SimulationTrace:
     """Per control cycle k (N cycles): time_s (N,), true_states (N, 4) at the cycle start,
     angle_counts / position_counts (N,), estimates (N, 4), voltage_v / requested_v (N,),
-    reference_states (N, 4), reference_input_v (N,)."""
+    reference_states (N, 4), reference_input_v (N,); peak_abs_theta_rad (N,) the largest |θ| at
+    any physics step of each period (the safety promise is per physics step, not per sample)."""
 
     time_s: np.ndarray
     true_states: np.ndarray
@@ -35,6 +36,7 @@ class SimulationTrace:
     requested_v: np.ndarray
     reference_states: np.ndarray
     reference_input_v: np.ndarray
+    peak_abs_theta_rad: np.ndarray
 
 
 def simulate_closed_loop(
@@ -61,6 +63,7 @@ def simulate_closed_loop(
             "requested_v",
             "reference_states",
             "reference_input_v",
+            "peak_abs_theta_rad",
         )
     }
     for cycle in range(n_cycles):
@@ -78,8 +81,13 @@ def simulate_closed_loop(
             ("reference_input_v", reference_input_v),
         ):
             columns[name].append(value)
+        peak_rad = abs(float(state[0]))
         for _ in range(sensor_periods_per_cycle):
-            state = physics.advance(state, output.voltage_v, substeps_per_sensor_period)
+            state, step_peak_rad = physics.advance_with_peak(
+                state, output.voltage_v, substeps_per_sensor_period
+            )
+            peak_rad = max(peak_rad, step_peak_rad)
             noise_m = next_noise(params, noise_m, rng)
+        columns["peak_abs_theta_rad"].append(peak_rad)
     arrays = {name: np.array(values) for name, values in columns.items()}
     return SimulationTrace(time_s=np.arange(n_cycles) * design.period_s, **arrays)

@@ -116,12 +116,19 @@ def summarise(run_log: RunLog, theta_limit_rad: float | None = None) -> dict[str
     reference_at_truth = np.interp(
         series.truth_time_s, series.reference_time_s, series.reference_states[:, 3], right=0.0
     )
+    # u_d in force at each command (real time may skip cycles; a cut log may lack a few rows)
+    reference_input_v = np.asarray(run_log.topics["/reference"].values["input_v"], dtype=float)
+    index = np.searchsorted(series.reference_time_s, series.cycle_time_s, side="right") - 1
+    input_at_commands = reference_input_v[np.clip(index, 0, len(reference_input_v) - 1)]
     metrics = compute_metrics(
         series.truth_time_s,
         series.truth_states,
         series.voltage_v,
         reference_at_truth,
         theta_limit_rad,
+        reference_input_v=input_at_commands,
+        minimum_time_s=minimum_time_from_log(run_log),
+        voltage_time_s=series.cycle_time_s,
     ).as_dict()
     timing = run_log.topics["/timing"]
     enabled = run_log.topics["/command"].values["enable"] == 1
@@ -190,6 +197,18 @@ def _recorded_limit(run_log: RunLog, name: str) -> float:
     if not (math.isfinite(value) and value > 0):
         raise LogFormatError(f"{run_log.path}: the recorded config has limits.{name} = {value}")
     return value
+
+
+def minimum_time_from_log(run_log: RunLog) -> float | None:
+    """T* from the run's recorded start and limits (None where the config is not usable)."""
+    from ballbeam.assembly import minimum_time_s
+    from ballbeam.config import config_from_mapping
+    from ballbeam.errors import BallbeamError
+
+    try:
+        return minimum_time_s(config_from_mapping(_resolved_config(run_log)))
+    except BallbeamError:
+        return None
 
 
 def limit_from_log(run_log: RunLog) -> float:

@@ -24,11 +24,24 @@ observer_Ad, observer_Bd   (4, 4),   observer model over one period
                            (4,)
 observer_C, observer_L     (2, 4),   output matrix and steady-state Kalman gain
                            (4, 2)
+deadband_v, deadzone_v     ()        command band sent as 0 V; modelled dead zone
+rest_from_cycle            ()        the plan's end (cycle): rest observer and gains
+rest_observer_L            (4, 2)    present with a rest filter: its Kalman gain
+rest_*                               present with rest gains: gain (4,), far_gain (4,)
+                                     (optional), from_cycle, blend_cycles,
+                                     theta_near_rad, theta_far_rad, position_near_m,
+                                     position_far_m (scalars)
 guard_*                              present when the angle guard is on: theta_limit_rad,
                                      voltage_limit_v, theta_per_v, rate_per_v,
                                      rate_step_rad_s, beyond_slope_s (scalars),
                                      theta_row, rate_row (4,), stopping_rad (M,)
+soft_*                               present with the soft cap: theta_limit_rad,
+                                     zone_gain_per_s, rate_gain_per_s, alpha,
+                                     alpha_beta, gap_step_rad (scalars),
+                                     allowed_rate_rad_s (K,)
 =========================  ========  ===================================================
+
+Integers (cycles) are stored as float64 too; they are exact below 2**53.
 """
 
 from __future__ import annotations
@@ -39,17 +52,20 @@ from typing import Any
 
 import numpy as np
 
-from ballbeam.core.control import ControllerDesign, ObserverLaw
-from ballbeam.core.guard import AngleGuard
+from ballbeam.core.control import ControllerDesign, ObserverLaw, RestGains
+from ballbeam.core.guard import AngleGuard, SoftCap
 from ballbeam.errors import LogFormatError
 
 ATTACHMENT_NAME = "controller_design.npz"
 MEDIA_TYPE = "application/x-npz"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 MAX_UNPACKED_BYTES = 64 << 20  # far above any real design (8000 steps: ~0.6 MB)
 
 _SCALARS = ("period_s", "plan_duration_s", "voltage_limit_v", "angle_per_count",
-            "position_per_count")
+            "position_per_count", "deadband_v", "deadzone_v")
+_REST_SCALARS = ("theta_near_rad", "theta_far_rad", "position_near_m", "position_far_m")
+_SOFT_SCALARS = ("theta_limit_rad", "zone_gain_per_s", "rate_gain_per_s", "alpha",
+                 "alpha_beta", "gap_step_rad")
 _GUARD_SCALARS = ("theta_limit_rad", "voltage_limit_v", "theta_per_v", "rate_per_v",
                   "rate_step_rad_s", "beyond_slope_s")
 
@@ -68,13 +84,28 @@ def encode_design(design: ControllerDesign) -> bytes:
         "observer_Bd": _f8(design.observer.Bd),
         "observer_C": _f8(design.observer.C),
         "observer_L": _f8(design.observer.L),
+        "rest_from_cycle": _f8(design.rest_from_cycle),
     }
+    if design.rest_observer is not None:
+        arrays["rest_observer_L"] = _f8(design.rest_observer.L)
+    rest = design.rest_gains
+    if rest is not None:
+        arrays.update({f"rest_{name}": _f8(getattr(rest, name)) for name in _REST_SCALARS})
+        arrays["rest_gain"] = _f8(rest.gain)
+        arrays["rest_from_cycle_gains"] = _f8(rest.from_cycle)
+        arrays["rest_blend_cycles"] = _f8(rest.blend_cycles)
+        if rest.far_gain is not None:
+            arrays["rest_far_gain"] = _f8(rest.far_gain)
     guard = design.guard
     if guard is not None:
         arrays.update({f"guard_{name}": _f8(getattr(guard, name)) for name in _GUARD_SCALARS})
         arrays["guard_theta_row"] = _f8(guard.theta_row)
         arrays["guard_rate_row"] = _f8(guard.rate_row)
         arrays["guard_stopping_rad"] = _f8(guard.stopping_rad)
+        if guard.soft is not None:
+            soft = guard.soft
+            arrays.update({f"soft_{name}": _f8(getattr(soft, name)) for name in _SOFT_SCALARS})
+            arrays["soft_allowed_rate_rad_s"] = _f8(soft.allowed_rate_rad_s)
     buffer = io.BytesIO()
     np.savez_compressed(buffer, **arrays)  # type: ignore[arg-type]
     return buffer.getvalue()
@@ -92,14 +123,37 @@ def decode_design(data: bytes, where: str) -> ControllerDesign:
             )
         guard = None
         if "guard_stopping_rad" in arrays:
-            stopping = arrays["guard_stopping_rad"]
-            if stopping.ndim != 1 or stopping.size < 2:
-                raise ValueError("guard_stopping_rad must be a table of 2 or more entries")
+            soft = None
+            if "soft_allowed_rate_rad_s" in arrays:
+                soft = SoftCap(
+                    **{name: _scalar(arrays[f"soft_{name}"]) for name in _SOFT_SCALARS},
+                    allowed_rate_rad_s=_table(arrays["soft_allowed_rate_rad_s"], "soft"),
+                )
             guard = AngleGuard(
                 **{name: _scalar(arrays[f"guard_{name}"]) for name in _GUARD_SCALARS},
                 theta_row=_four(arrays["guard_theta_row"]),
                 rate_row=_four(arrays["guard_rate_row"]),
-                stopping_rad=tuple(stopping.tolist()),
+                stopping_rad=_table(arrays["guard_stopping_rad"], "guard"),
+                soft=soft,
+            )
+        observer = ObserverLaw.from_arrays(
+            arrays["observer_Ad"], arrays["observer_Bd"], arrays["observer_C"],
+            arrays["observer_L"],
+        )
+        rest_observer = None
+        if "rest_observer_L" in arrays:
+            rest_observer = ObserverLaw.from_arrays(
+                arrays["observer_Ad"], arrays["observer_Bd"], arrays["observer_C"],
+                arrays["rest_observer_L"],
+            )
+        rest_gains = None
+        if "rest_gain" in arrays:
+            rest_gains = RestGains(
+                **{name: _scalar(arrays[f"rest_{name}"]) for name in _REST_SCALARS},
+                gain=_four(arrays["rest_gain"]),
+                far_gain=_four(arrays["rest_far_gain"]) if "rest_far_gain" in arrays else None,
+                from_cycle=_count(arrays["rest_from_cycle_gains"]),
+                blend_cycles=max(_count(arrays["rest_blend_cycles"]), 1),
             )
         return ControllerDesign(
             **{name: _scalar(arrays[name]) for name in _SCALARS},
@@ -108,12 +162,12 @@ def decode_design(data: bytes, where: str) -> ControllerDesign:
             final_gain=arrays["final_gain"],
             reference_states=arrays["reference_states"],
             reference_input_v=arrays["reference_input_v"],
-            observer=ObserverLaw.from_arrays(
-                arrays["observer_Ad"], arrays["observer_Bd"], arrays["observer_C"],
-                arrays["observer_L"],
-            ),
+            observer=observer,
             guard=guard,
             initial_state=_four(arrays["initial_state"]),
+            rest_from_cycle=_count(arrays["rest_from_cycle"]),
+            rest_observer=rest_observer,
+            rest_gains=rest_gains,
         )
     except LogFormatError:
         raise
@@ -177,6 +231,19 @@ def _scalar(array: np.ndarray) -> float:
     if array.shape != ():
         raise ValueError(f"expected a scalar, got shape {array.shape}")
     return float(array)
+
+
+def _count(array: np.ndarray) -> int:
+    value = _scalar(array)
+    if not (0 <= value < 2**53 and value == int(value)):
+        raise ValueError(f"expected a cycle count, got {value}")
+    return int(value)
+
+
+def _table(array: np.ndarray, what: str) -> tuple[float, ...]:
+    if array.ndim != 1 or array.size < 2:
+        raise ValueError(f"the {what} table must have 2 or more entries")
+    return tuple(array.tolist())
 
 
 def _four(array: np.ndarray) -> tuple[float, float, float, float]:

@@ -57,7 +57,12 @@ from ballbeam.core.planning.lp import _Grid, _make_grid, _Solve, _solve_steps
 from ballbeam.core.planning.plan import PlanSamples
 from ballbeam.errors import ConfigError, PlanningError
 
-__all__ = ["TimeOptimalPlan", "intersample_margin_rad", "plan_time_optimal"]
+__all__ = [
+    "TimeOptimalPlan",
+    "intersample_margin_rad",
+    "plan_time_optimal",
+    "plan_time_optimal_from_outside",
+]
 
 # The coarsest grid has at most this many steps over the lower bound on the time ...
 _COARSE_STEPS = 40
@@ -437,6 +442,73 @@ def _plan(grid: _Grid, input_v: np.ndarray, *, verified: bool) -> TimeOptimalPla
         voltage_limit_v=grid.voltage_v,
         theta_max_rad=grid.theta_max_rad,
         verified_minimal=verified,
+        pole_per_s=p.pole_per_s,
+        alpha=p.alpha,
+        gamma=p.gamma,
+    )
+
+
+def plan_time_optimal_from_outside(
+    model: LinearModel,
+    initial_state: np.ndarray,
+    *,
+    voltage_limit_v: float,
+    theta_max_rad: float,
+    step_s: float = 1e-3,
+    max_duration_s: float = 20.0,
+) -> TimeOptimalPlan:
+    """``plan_time_optimal``, also from a start beyond ±``theta_max_rad`` (but at rest or
+    turning back): full voltage away from the limit until the path's bound is reached, then
+    the minimum-time path from there.
+
+    A path that keeps a margin off the angle limit cannot hold a start on the limit (the
+    paper's −52°); riding the start's angle instead would leave the tracker no room there. The
+    lead-in is the time-optimal start whenever the optimum leaves the limit at once (the
+    paper's start does: it swings to the other side first), and costs a few steps otherwise.
+    """
+    p = _params(model)
+    x0 = np.asarray(initial_state, dtype=float).reshape(4)
+    side = math.copysign(1.0, x0[0])
+    if abs(x0[0]) <= theta_max_rad:
+        return plan_time_optimal(
+            model,
+            x0,
+            voltage_limit_v=voltage_limit_v,
+            theta_max_rad=theta_max_rad,
+            step_s=step_s,
+            max_duration_s=max_duration_s,
+        )
+    if side * x0[1] > 0.0:
+        raise PlanningError(
+            f"the start {math.degrees(x0[0]):.2f}° is beyond the "
+            f"±{math.degrees(theta_max_rad):.2f}° path bound and moving further out"
+        )
+    # the lead-in's samples must end within the bound less the planner's intersample margin
+    inside = theta_max_rad - _accel_max(p, voltage_limit_v, x0[1]) * step_s**2 / 8.0
+    lead_v: list[float] = []
+    state = x0[None, :]
+    one_step = np.array([step_s])
+    while abs(state[0, 0]) > inside:
+        if len(lead_v) * step_s > max_duration_s:
+            raise PlanningError("the start does not leave the limit")  # pragma: no cover
+        lead_v.append(-side * voltage_limit_v)
+        state = _propagate(p, state, np.array([lead_v[-1]]), one_step)
+    rest = plan_time_optimal(
+        model,
+        state[0],
+        voltage_limit_v=voltage_limit_v,
+        theta_max_rad=theta_max_rad,
+        step_s=step_s,
+        max_duration_s=max_duration_s - len(lead_v) * step_s,
+    )
+    input_v = np.concatenate([np.array(lead_v), rest.input_v])
+    return TimeOptimalPlan(
+        step_s=step_s,
+        input_v=input_v,
+        grid_states=_simulate(p, step_s, x0, input_v),
+        voltage_limit_v=rest.voltage_limit_v,
+        theta_max_rad=theta_max_rad,  # from the end of the lead-in on
+        verified_minimal=False,
         pole_per_s=p.pole_per_s,
         alpha=p.alpha,
         gamma=p.gamma,
