@@ -11,6 +11,7 @@ import dataclasses
 import random
 from pathlib import Path
 
+import numpy as np
 import pytest
 from cantools.autosar.end_to_end import apply_profile5_crc
 from hypothesis import HealthCheck, assume, given, settings
@@ -609,3 +610,24 @@ def test_the_dbc_defines_scales_and_ranges(tmp_path: Path) -> None:
     assert data[3:5] == (123).to_bytes(2, "little", signed=True)
     with pytest.raises(FrameRejectedError, match="Voltage"):
         contract.encode_voltage_command(1, 10.01, True, 0)
+
+
+def test_raw_signal_reads_many_recorded_frames_as_decode_reads_one() -> None:
+    """The vectorised reader the log analysis uses agrees with decode, signed fields too."""
+    contract = FrameContract.load()
+    rng = random.Random(5)
+    frames = [
+        SensorFrame(rng.randrange(256), rng.randrange(-2000, 2000), rng.randrange(-30000, 30000),
+                    rng.randrange(4))
+        for _ in range(200)
+    ]
+    data = np.array([list(contract.encode(frame)[1]) for frame in frames], dtype=np.uint8)
+    assert list(contract.raw_signal(SENSOR_ID, "Counter", data)) == [f.counter for f in frames]
+    assert list(contract.raw_signal(SENSOR_ID, "AngleCounts", data)) == [
+        f.angle_counts for f in frames
+    ]
+    assert list(contract.raw_signal(SENSOR_ID, "PositionCounts", data)) == [
+        f.position_counts for f in frames
+    ]
+    with pytest.raises(FrameError, match="no signal"):
+        contract.raw_signal(SENSOR_ID, "Nonexistent", data)

@@ -16,6 +16,7 @@ from ballbeam.core.metrics import compute_metrics
 from ballbeam.errors import LogFormatError
 from ballbeam.logs.reader import RunLog
 from ballbeam.logs.topics import STRUCT_TOPICS
+from ballbeam.protocol.frames import SENSOR_ID, VOLTAGE_COMMAND_ID, FrameContract
 
 REQUIRED_TOPICS = ("/command", "/reference", "/truth", "/timing")
 SATURATION_TOLERANCE_V = 1e-6
@@ -80,8 +81,6 @@ def _percentile_us(values_ns: np.ndarray, q: float) -> float:
     return float(np.percentile(values_ns, q)) * 1e-3 if values_ns.size else math.nan
 
 
-SENSOR_FRAME_ID = 0x101
-COMMAND_FRAME_ID = 0x100
 
 
 def sensor_to_command_latency_s(run_log: RunLog) -> np.ndarray:
@@ -91,13 +90,17 @@ def sensor_to_command_latency_s(run_log: RunLog) -> np.ndarray:
     if rx is None or tx is None or not len(rx) or not len(tx):
         return np.empty(0)
     rx_values, tx_values = rx.values, tx.values
-    sensors = rx_values[rx_values["arbitration_id"] == SENSOR_FRAME_ID]
-    commands = tx_values[tx_values["arbitration_id"] == COMMAND_FRAME_ID]
-    commands = commands[(commands["data"][:, 5] & 1) == 1]
+    contract = FrameContract.load()
+    sensors = rx_values[rx_values["arbitration_id"] == SENSOR_ID]
+    commands = tx_values[tx_values["arbitration_id"] == VOLTAGE_COMMAND_ID]
+    enabled = contract.raw_signal(VOLTAGE_COMMAND_ID, "Enable", commands["data"]) == 1
+    commands = commands[enabled]
+    sensor_counters = contract.raw_signal(SENSOR_ID, "Counter", sensors["data"])
+    answered = contract.raw_signal(VOLTAGE_COMMAND_ID, "SensorCounter", commands["data"])
     latencies = []
-    for counter in np.unique(commands["data"][:, 6]):
-        received = np.sort(sensors["bus_time_s"][sensors["data"][:, 2] == counter])
-        sent = commands["bus_time_s"][commands["data"][:, 6] == counter]
+    for counter in np.unique(answered):
+        received = np.sort(sensors["bus_time_s"][sensor_counters == counter])
+        sent = commands["bus_time_s"][answered == counter]
         if not received.size:
             continue
         index = np.searchsorted(received, sent, side="right") - 1

@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Final, Literal, TypeAlias
 
 import cantools
+import numpy as np
 
 from ballbeam.errors import FrameError
 
@@ -413,6 +414,21 @@ class FrameContract:
             else:
                 values.append(raw)
         return layout.frame_type(*values)  # type: ignore[arg-type]
+
+    def raw_signal(self, arbitration_id: int, signal: str, data: np.ndarray) -> np.ndarray:
+        """One signal's raw values from many recorded frames at once: ``data`` (N, 8) uint8
+        payloads of frames with ``arbitration_id`` → (N,) int64, sign-extended as the DBC says.
+        No checks (the frames were judged when they were received); for analysis of logs."""
+        layout = self._by_id.get(arbitration_id)
+        field = next((f for f in layout.fields if f.name == signal), None) if layout else None
+        if field is None:
+            raise FrameError(f"frame 0x{arbitration_id:03X} has no signal {signal!r}")
+        payload = np.ascontiguousarray(np.asarray(data, dtype=np.uint8).reshape(-1, FRAME_LENGTH))
+        words = payload.view("<u8")[:, 0]
+        raw = ((words >> np.uint64(field.start)) & np.uint64(field.mask)).astype(np.int64)
+        if field.sign_bit:
+            raw = np.where(raw & field.sign_bit, raw - (field.sign_bit << 1), raw)
+        return raw
 
 
 class CounterCheck:
