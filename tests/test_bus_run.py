@@ -30,14 +30,8 @@ def run_json(config: Path, tmp_path: Path, *overrides: str) -> dict[str, object]
         for item in ("--set", override)
     ]
     result = ballbeam("run", str(config), *sets, "--json")
-    assert result.returncode in (0, 1), result.stderr
+    assert result.returncode == 0, result.stderr
     summary: dict[str, object] = json.loads(result.stdout)
-    # Exit 1 is a run that broke its θ bound (limits + controller.bound_tolerance_deg): a
-    # real-time run starved of CPU on a shared machine can; the tests then judge it.
-    resolved = load_config(config, list(overrides))
-    bound_deg = resolved.limits.theta_deg + resolved.controller.bound_tolerance_deg
-    broken = float(str(summary["max_abs_theta_deg"])) > bound_deg
-    assert result.returncode == (1 if broken else 0), result.stderr
     return summary
 
 

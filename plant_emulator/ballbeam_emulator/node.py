@@ -5,11 +5,6 @@ when it arrives (the physics is advanced to that instant first), like a DAC upda
 Lock-step: one control period per valid command answering the latest sample; with no answer
 the sample is sent again, so a lost frame costs time, never determinism.
 Either way a watchdog zeroes the voltage when valid commands stop.
-
-With an authenticator (``bus.authenticate``) every frame sent is a SecOC-style CAN FD frame
-and only commands with a right MAC and a fresh freshness value are obeyed (protocol/secoc.py);
-the freshness, not the 8-bit counter, then orders the commands, so a restarted daemon is obeyed
-at once. Sensor counters count sample periods: a period the emulator missed is a gap.
 """
 
 from __future__ import annotations
@@ -37,7 +32,6 @@ from ballbeam.protocol.frames import (
     VoltageCommand,
     next_counter,
 )
-from ballbeam.protocol.secoc import AUTHENTICATED_LENGTH, CLASSIC_LENGTH, FrameAuthenticator
 from ballbeam.runtime.bus import recv_frame
 from ballbeam.runtime.stop import StopFlag
 from ballbeam.runtime.ticker import Ticker
@@ -55,25 +49,13 @@ class EmulatorCounters:
     own_or_foreign: int = 0
     dropped_by_injection: int = 0
     watchdog_trips: int = 0
-    missed_periods: int = 0  # real time: sample periods the emulator could not keep
-    unauthenticated: int = 0  # commands with no MAC (a stranger's, on an authenticated bus)
-    bad_mac: int = 0
-    replayed: int = 0  # right MAC, freshness not newer than the last accepted
-    out_of_window: int = 0
 
 
 class PlantEmulator:
-    def __init__(
-        self,
-        config: Config,
-        bus: can.BusABC,
-        contract: FrameContract,
-        auth: FrameAuthenticator | None = None,
-    ) -> None:
+    def __init__(self, config: Config, bus: can.BusABC, contract: FrameContract) -> None:
         self.config = config
         self.bus = bus
         self.contract = contract
-        self.auth = auth
         params = plant_parameters(config)
         self.physics = PlantPhysics(params)
         self.rng = np.random.default_rng(config.plant.seed)
@@ -96,16 +78,7 @@ class PlantEmulator:
 
     # -- frames -------------------------------------------------------------------------------
     def _send(self, arbitration_id: int, data: bytes) -> None:
-        if self.auth is None:
-            message = can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=False)
-        else:
-            message = can.Message(
-                arbitration_id=arbitration_id,
-                data=self.auth.protect(arbitration_id, data),
-                is_extended_id=False,
-                is_fd=True,
-            )
-        self.bus.send(message)
+        self.bus.send(can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=False))
 
     def _send_sample(self) -> None:
         """The sensor frame first (the controller can start its cycle at once), then the
@@ -148,20 +121,8 @@ class PlantEmulator:
         ):
             self.counters.own_or_foreign += 1
             return None
-        data = bytes(message.data)
-        if self.auth is not None:
-            if len(data) != AUTHENTICATED_LENGTH:
-                self.counters.unauthenticated += 1
-                self.counters.rejected += 1
-                return None
-            verdict = self.auth.verify(VOLTAGE_COMMAND_ID, data)
-            if verdict != "ok":
-                setattr(self.counters, verdict, getattr(self.counters, verdict) + 1)
-                self.counters.rejected += 1
-                return None
-            data = data[:CLASSIC_LENGTH]
         try:
-            command = self.contract.decode(message.arbitration_id, data)
+            command = self.contract.decode(message.arbitration_id, bytes(message.data))
         except FrameError:
             self.counters.rejected += 1
             return None
@@ -170,9 +131,7 @@ class PlantEmulator:
         if loss and self.fault_rng.random() < loss:
             self.counters.dropped_by_injection += 1
             return None
-        # Authenticated: the freshness has ordered the commands already, across daemon
-        # restarts; the counter is then only the classic contract's.
-        if self.auth is None and self.command_check.classify(command.counter) != "ok":
+        if self.command_check.classify(command.counter) != "ok":
             self.counters.rejected += 1
             return None
         return command
@@ -192,9 +151,6 @@ class PlantEmulator:
             self.voltage_v = 0.0
             self.watchdog_zeroed = True
             self.counters.watchdog_trips += 1
-            # The next valid command may come from a restarted daemon whose counter starts
-            # afresh: take it as the first of a new stream, not as stale.
-            self.command_check.reset()
             log.warning("watchdog: no valid command for %.1f ms, voltage zeroed",
                         (now_ns - self.last_command_ns) / 1e6)
 
@@ -267,10 +223,6 @@ class PlantEmulator:
                 self._apply(command, now_ns)
             self._check_watchdog(time.monotonic_ns())
             tick = ticker.wait()
-            if tick.skipped:
-                # Counters count sample periods: a period not sampled is a visible gap.
-                self.counters.missed_periods += tick.skipped
-                self.counter = (self.counter + tick.skipped) % 256
 
     def stop(self) -> None:
         """Leave the plant safe: zero volts."""

@@ -15,10 +15,8 @@ from typing import Any
 import numpy as np
 
 from ballbeam.errors import BallbeamError
-from ballbeam.runtime.exit_codes import HELP as EXIT_CODES_HELP
 from ballbeam.runtime.process import (
     add_config_arguments,
-    add_secret_argument,
     config_from_arguments,
     configure_logging,
     resolve_config_argument,
@@ -116,47 +114,28 @@ def command_simulate(args: argparse.Namespace) -> int:
 def command_daemon(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from ballbeam.runtime.daemon.loop import PlantLostError
     from ballbeam.runtime.daemon.node import run_daemon
-    from ballbeam.runtime.exit_codes import EXIT_PLANT_LOST, exit_code
-    from ballbeam.runtime.process import new_log_path, secret_from_arguments
+    from ballbeam.runtime.process import new_log_path
 
     configure_logging()
     config = config_from_arguments(args)
     log_path = Path(args.log) if args.log else new_log_path(config.run.log_dir, config.plan.kind)
-    secret = secret_from_arguments(args)
-    try:
-        stats = run_daemon(config, log_path, args.config, secret)
-    except PlantLostError as error:
-        print(f"ballbeam: error: {error}", file=sys.stderr)
-        return EXIT_PLANT_LOST
+    run_daemon(config, log_path, args.config)
     print(log_path)
-    code = exit_code(stats.end_reason, stats.bound_broken)
-    if code:
-        print(
-            f"ballbeam: the run ended with {stats.end_reason}"
-            + (f", |θ| reached {stats.max_abs_truth_theta_deg}° (bound "
-               f"{config.limits.theta_deg}°)" if stats.bound_broken else "")
-            + f": exit {code} (log: {log_path})",
-            file=sys.stderr,
-        )
-    return code
+    return 0
 
 
 def command_emulator(args: argparse.Namespace) -> int:
-    from ballbeam.runtime.process import secret_from_arguments
     from ballbeam_emulator.main import run_emulator
 
     configure_logging()
-    config = config_from_arguments(args)
-    run_emulator(config, secret_from_arguments(args))
+    run_emulator(config_from_arguments(args))
     return 0
 
 
 def command_run(args: argparse.Namespace) -> int:
     from ballbeam.evaluation.summary import summarise
     from ballbeam.logs.reader import read_log
-    from ballbeam.runtime.exit_codes import exit_code
     from ballbeam.runtime.launcher import launch_run
 
     result = launch_run(args.config, args.overrides)
@@ -176,18 +155,14 @@ def command_run(args: argparse.Namespace) -> int:
             f"over {result.config.bus.interface}",
             summary,
         )
-    end_reason = str(summary.get("end_reason"))
-    bound_deg = result.config.limits.theta_deg + result.config.controller.bound_tolerance_deg
-    bound_broken = float(summary.get("max_abs_theta_deg") or 0.0) > bound_deg
-    code = exit_code(end_reason, bound_broken)
-    if code:
+    if summary.get("end_reason") != "completed":
         print(
-            f"ballbeam: the run ended with {end_reason}"
-            + (" and broke a safety bound" if bound_broken else "")
-            + f": exit {code} (log: {result.log_path})",
+            f"ballbeam: the run did not complete: {summary.get('end_reason')} "
+            f"(log: {result.log_path})",
             file=sys.stderr,
         )
-    return code
+        return 1
+    return 0
 
 
 def _read_log_or_fail(path: str) -> Any:
@@ -327,18 +302,14 @@ def build_parser() -> argparse.ArgumentParser:
     simulate.set_defaults(handler=command_simulate)
 
     run = commands.add_parser(
-        "run", help="run emulator and daemon as two processes over the bus, record, summarise",
-        epilog=EXIT_CODES_HELP,
+        "run", help="run emulator and daemon as two processes over the bus, record, summarise"
     )
     add_config_arguments(run)
     run.add_argument("--json", action="store_true", help="print one JSON object")
     run.set_defaults(handler=command_run)
 
-    daemon = commands.add_parser(
-        "daemon", help="run the controller daemon alone", epilog=EXIT_CODES_HELP
-    )
+    daemon = commands.add_parser("daemon", help="run the controller daemon alone")
     add_config_arguments(daemon)
-    add_secret_argument(daemon)
     daemon.add_argument("--log", metavar="MCAP", help="log file (default: a new one in logs/)")
     daemon.set_defaults(handler=command_daemon)
 
@@ -385,7 +356,6 @@ def build_parser() -> argparse.ArgumentParser:
 
     emulator = commands.add_parser("emulator", help="run the plant emulator alone")
     add_config_arguments(emulator)
-    add_secret_argument(emulator)
     emulator.set_defaults(handler=command_emulator)
     return parser
 

@@ -7,7 +7,6 @@ See the package docstring (:mod:`tests.faults`) for how the tests use it.
 from __future__ import annotations
 
 import math
-import os
 import re
 import secrets
 import signal
@@ -28,9 +27,7 @@ from ballbeam.config import DEFAULT_BUS_GROUP, load_config
 from ballbeam.evaluation.summary import summarise
 from ballbeam.logs.reader import RunLog, read_log
 from ballbeam.protocol.frames import VOLTAGE_COMMAND_ID, FrameContract, VoltageCommand
-from ballbeam.protocol.secoc import AUTHENTICATED_LENGTH, SECRET_BYTES, FrameAuthenticator
 from ballbeam.runtime.bus import IPV6_MULTICAST_ALL, free_udp_port, isolated_group, multicast_scope
-from ballbeam.runtime.launcher import secret_pipe
 
 from ..conftest import PAPER, REPO, ballbeam_argv
 
@@ -171,13 +168,10 @@ class BusWatch:
 
 
 def decoded(heard: Heard) -> object | None:
-    """The classic frame a heard frame carries (an authenticated frame's first 8 bytes: the
-    test's node does not check MACs unless it asks :class:`Bench`'s authenticator)."""
     if heard.is_extended_id:
         return None
-    data = heard.data[:8] if len(heard.data) == AUTHENTICATED_LENGTH else heard.data
     try:
-        return CONTRACT.decode(heard.arbitration_id, data)
+        return CONTRACT.decode(heard.arbitration_id, heard.data)
     except ValueError:
         return None
 
@@ -256,9 +250,6 @@ class Bench:
             *extra,
         ]
         self.config = load_config(PAPER, self.overrides)
-        # The run secret, handed to both processes as ``ballbeam run`` does (an inherited
-        # pipe); the test keeps it, to play a second holder of the key when it wants to.
-        self.secret = secrets.token_bytes(SECRET_BYTES) if self.config.bus.authenticated else None
         self.log_path = tmp / f"{mode}-{secrets.token_hex(4)}.mcap"
         self.watch = BusWatch(self.group, self.port) if watch else None
         self._files: list[Any] = []
@@ -276,30 +267,9 @@ class Bench:
         # stderr to a file: a pipe nobody reads could fill up and stall the process.
         stream = (self.tmp / f"{name}-{secrets.token_hex(3)}.stderr").open("w+b")
         self._files.append(stream)
-        fds: tuple[int, ...] = ()
-        if self.secret is not None:
-            fds = (secret_pipe(self.secret),)
-            argv = [*argv, "--secret-fd", str(fds[0])]
-        try:
-            process = subprocess.Popen(
-                argv, stdout=subprocess.PIPE, stderr=stream, cwd=REPO, pass_fds=fds
-            )
-        finally:
-            for fd in fds:
-                os.close(fd)
+        process = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=stream, cwd=REPO)
         process.stderr_file = stream  # type: ignore[attr-defined]
         return process
-
-    def authenticator(self) -> FrameAuthenticator:
-        """A node holding this run's secret (a second writer, when the test sends with it)."""
-        assert self.secret is not None, "the bench's bus is not authenticated"
-        return FrameAuthenticator(self.secret)
-
-    def respawn_daemon(self, log_path: Path) -> subprocess.Popen[bytes]:
-        """A new daemon on the same bench (after the first one was killed)."""
-        args = ["daemon", str(PAPER), *set_args(self.overrides), "--log", str(log_path)]
-        self.daemon = self._spawn("daemon", ballbeam_argv(*args))
-        return self.daemon
 
     @staticmethod
     def stderr(process: subprocess.Popen[bytes]) -> str:
@@ -385,13 +355,6 @@ def run_to_end(bench: Bench, extra_budget_s: float = 0.0) -> Outcome:
 
 def summary_meta(log: RunLog) -> dict[str, str]:
     return dict(log.metadata.get("summary", {}))
-
-
-def assert_truthful_exit(outcome: Outcome) -> None:
-    """A run that completed exits 0, or 1 if the plant broke its θ bound (runtime/exit_codes.py):
-    a real-time run starved of CPU by the tests beside it on a shared machine can."""
-    broken = summary_meta(outcome.log).get("bound_broken") == "True"
-    assert outcome.daemon_exit == (1 if broken else 0), outcome.daemon_stderr[-2000:]
 
 
 def faults(log: RunLog, kind: str | None = None) -> list[dict[str, Any]]:

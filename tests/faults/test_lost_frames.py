@@ -27,9 +27,7 @@ def test_lost_frames_are_survived_and_visible(
 ) -> None:
     with Bench(tmp_path, "realtime", 4.0, f"plant.{loss}=0.05", watch=False) as bench:
         outcome = run_to_end(bench)
-    # Exit 1 only if the plant passed the θ bound by more than its tolerance (the run tells).
-    broken = summary_meta(outcome.log)["bound_broken"] == "True"
-    assert outcome.daemon_exit == (1 if broken else 0), outcome.daemon_stderr[-2000:]
+    assert outcome.daemon_exit == 0, outcome.daemon_stderr[-2000:]
     summary = outcome.summary
     assert summary["end_reason"] == "completed" and not summary["truncated"]
     assert_settles_like(outcome, clean_realtime)

@@ -7,8 +7,6 @@ daemon exits; the emulator is then stopped with SIGTERM.
 
 from __future__ import annotations
 
-import os
-import secrets
 import signal
 import subprocess
 import sys
@@ -19,9 +17,7 @@ from pathlib import Path
 
 from ballbeam.config import Config, load_config
 from ballbeam.errors import BallbeamError
-from ballbeam.protocol.secoc import SECRET_BYTES
 from ballbeam.runtime.bus import check_stays_on_host, free_udp_port, isolated_group
-from ballbeam.runtime.exit_codes import RECORDED_RUN_CODES
 from ballbeam.runtime.process import new_log_path
 
 STOP_GRACE_S = 5.0
@@ -45,24 +41,6 @@ def _tail(text: str, lines: int = 8) -> str:
     return "\n".join(text.strip().splitlines()[-lines:])
 
 
-def _spawn(argv: list[str], secret: bytes | None) -> subprocess.Popen[str]:
-    if secret is None:
-        return subprocess.Popen(
-            argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True
-        )
-    fd = secret_pipe(secret)
-    try:
-        return subprocess.Popen(
-            [*argv, "--secret-fd", str(fd)],
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.PIPE,
-            text=True,
-            pass_fds=(fd,),
-        )
-    finally:
-        os.close(fd)
-
-
 def _stop(process: subprocess.Popen[str]) -> int:
     if process.poll() is None:
         process.send_signal(signal.SIGTERM)
@@ -71,17 +49,6 @@ def _stop(process: subprocess.Popen[str]) -> int:
         except subprocess.TimeoutExpired:
             process.kill()
     return process.wait()
-
-
-def secret_pipe(secret: bytes) -> int:
-    """A pipe's read end holding ``secret`` (its write end closed): a child inherits it with
-    ``pass_fds`` and reads the secret with ``--secret-fd``. 32 bytes fit in any pipe buffer."""
-    read_fd, write_fd = os.pipe()
-    try:
-        os.write(write_fd, secret)
-    finally:
-        os.close(write_fd)
-    return read_fd
 
 
 def launch_run(
@@ -104,12 +71,19 @@ def launch_run(
     config_args = ([config_path] if config_path else []) + [
         argument for override in child_overrides for argument in ("--set", override)
     ]
-    # The run's frame-authentication secret: to each child through a pipe of its own, never
-    # on a command line, in the environment or in the log.
-    secret = secrets.token_bytes(SECRET_BYTES) if config.bus.authenticated else None
     started = time.monotonic()
-    emulator = _spawn([*base, "ballbeam_emulator", *config_args], secret)
-    daemon = _spawn([*base, "ballbeam", "daemon", *config_args, "--log", str(log_path)], secret)
+    emulator = subprocess.Popen(
+        [*base, "ballbeam_emulator", *config_args],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    daemon = subprocess.Popen(
+        [*base, "ballbeam", "daemon", *config_args, "--log", str(log_path)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     if on_started is not None:
         on_started({"emulator": emulator, "daemon": daemon})
     budget_s = (
@@ -133,14 +107,7 @@ def launch_run(
         raise
     emulator_exit = _stop(emulator)
     _, emulator_errors = emulator.communicate()
-    # A run that ended with a verdict (exit_codes.py) left a log to summarise; exit 1 is also
-    # what Python gives an uncaught exception, which leaves a traceback instead.
-    recorded = (
-        daemon.returncode in RECORDED_RUN_CODES
-        and log_path.exists()
-        and "Traceback (most recent call last)" not in daemon_errors
-    )
-    if not recorded:
+    if daemon.returncode != 0:
         raise RunFailedError(
             f"the daemon exited with {daemon.returncode}:\n{_tail(daemon_errors)}"
             + (f"\nemulator said:\n{_tail(emulator_errors)}" if emulator_errors.strip() else "")

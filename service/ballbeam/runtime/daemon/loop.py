@@ -38,7 +38,6 @@ from ballbeam.logs.topics import (
     TimingRecord,
 )
 from ballbeam.protocol.frames import SENSOR_ID, CounterCheck, FrameContract
-from ballbeam.protocol.secoc import FrameAuthenticator
 from ballbeam.runtime.bus import recv_frame
 from ballbeam.runtime.daemon.command_out import CommandOut
 from ballbeam.runtime.daemon.intake import SensorIntake
@@ -49,11 +48,6 @@ log = logging.getLogger("ballbeam.daemon")
 
 PHASE_PROBE_FRAMES = 20
 PHASE_PROBE_S = 0.05
-# Valid 0x100 frames this daemon did not send before the run ends as "second_writer": one on an
-# authenticated bus (only a holder of the run's secret can make one), a few on a classic bus
-# (a random frame passes the CRC-16 once in 65,536).
-SECOND_WRITER_FRAMES_AUTHENTICATED = 1
-SECOND_WRITER_FRAMES_CLASSIC = 3
 
 
 class PlantLostError(BallbeamError, TimeoutError):
@@ -71,14 +65,6 @@ class DaemonStats:
     command_resends: int = 0
     own_frames: int = 0
     theta_violation_events: int = 0
-    second_writer_frames: int = 0
-    authenticated: bool = False
-    truth_samples: int = 0
-    max_abs_truth_theta_deg: float = 0.0
-    # The safety bound: the plant's true |θ| beyond limits.theta_deg by more than
-    # controller.bound_tolerance_deg (where the emulator sends truth; on real hardware,
-    # without truth: the estimate beyond the limit, theta_violation_events).
-    bound_broken: bool = False
     rejected: Counter[str] = field(default_factory=Counter)
     end_reason: str = "completed"
 
@@ -103,23 +89,18 @@ class ControllerDaemon:
         contract: FrameContract,
         recording: RunRecording,
         stop: StopFlag,
-        auth: FrameAuthenticator | None = None,
     ) -> None:
         self.config = config
         self.design = design
         self.bus = bus
         self.recording = recording
         self.stop = stop
-        self.commands = CommandOut(bus, contract, recording, auth)
-        self.intake = SensorIntake(contract, recording, auth, self.commands.own_frame)
-        self.second_writer_limit = (
-            SECOND_WRITER_FRAMES_AUTHENTICATED if auth is not None
-            else SECOND_WRITER_FRAMES_CLASSIC
-        )
+        self.intake = SensorIntake(contract, recording)
+        self.commands = CommandOut(bus, contract, recording)
         self.period_ns = config.controller.period_ns
         self.n_cycles = round(config.run.duration_s * config.controller.rate_hz)
         self.state = ControllerState()
-        self._stats = DaemonStats(authenticated=auth is not None)
+        self._stats = DaemonStats()
         self.cycles_since_sensor = 0
         self.in_fault = False
         self.last_output: CycleOutput | None = None
@@ -127,9 +108,6 @@ class ControllerDaemon:
         self.mono_origin_ns = time.monotonic_ns()
         self.log_time_ns = self.wall_origin_ns
         self.theta_limit_rad = config.limits.theta_rad
-        self.bound_rad = math.radians(
-            config.limits.theta_deg + config.controller.bound_tolerance_deg
-        )
         self.outside_limit = False
 
     @property
@@ -138,15 +116,6 @@ class ControllerDaemon:
         self._stats.own_frames = self.intake.own_frames
         self._stats.rejected = self.intake.rejected
         self._stats.command_resends = self.commands.resends
-        self._stats.second_writer_frames = self.intake.second_writer_frames
-        self._stats.truth_samples = self.intake.truth_samples
-        theta_deg = math.degrees(self.intake.max_abs_truth_theta_rad)
-        self._stats.max_abs_truth_theta_deg = round(theta_deg, 3)
-        self._stats.bound_broken = (
-            self.intake.max_abs_truth_theta_rad > self.bound_rad
-            if self.intake.truth_samples
-            else self._stats.theta_violation_events > 0
-        )
         return self._stats
 
     @property
@@ -167,17 +136,6 @@ class ControllerDaemon:
 
     def _handle(self, message: can.Message) -> None:
         verdict = self.intake.handle(message, self.log_time_ns, self.state.cycle)
-        if (
-            self.intake.second_writer_frames >= self.second_writer_limit
-            and not self.stop.is_set()
-        ):
-            # Someone else commands our plant: stop now (the shutdown sends 0 V at once).
-            self._fault("second_writer",
-                        f"{self.intake.second_writer_frames} valid 0x100 frame(s) this daemon "
-                        "did not send: another writer commands the plant; stopping at 0 V")
-            log.error("a second writer commands the plant: stopping the run at 0 V")
-            self._stats.end_reason = "second_writer"
-            self.stop.set("second_writer")
         if verdict == "repeated" and self.config.run.mode == "lockstep":
             # The plant resent a sample because our answer was lost: answer again without
             # advancing the controller (so determinism survives frame loss).

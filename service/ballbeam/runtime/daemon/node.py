@@ -11,14 +11,12 @@ from pathlib import Path
 
 from ballbeam.assembly import controller_design
 from ballbeam.config import Config
-from ballbeam.errors import BusError
 from ballbeam.logs import design_record
 from ballbeam.logs.recorder import Recorder
 from ballbeam.logs.recording import RunRecording
 from ballbeam.protocol.frames import FrameContract
-from ballbeam.protocol.secoc import FrameAuthenticator
 from ballbeam.runtime.bus import open_bus
-from ballbeam.runtime.daemon.loop import ControllerDaemon, DaemonStats
+from ballbeam.runtime.daemon.loop import ControllerDaemon
 from ballbeam.runtime.process import (
     REALTIME_SWITCH_INTERVAL_S,
     apply_scheduling,
@@ -31,18 +29,8 @@ from ballbeam.runtime.stop import StopFlag
 log = logging.getLogger("ballbeam")
 
 
-NO_SECRET = (
-    "bus.authenticate is on ({bus}) but the daemon has no run secret: `ballbeam run` hands "
-    "one to both processes; alone, pass the same 32 bytes to both with --secret-fd N (e.g. "
-    "--secret-fd 0 < secret.bin), or set bus.authenticate=false for the classic contract"
-)
-
-
-def run_daemon(
-    config: Config, log_path: Path, config_path: str | None, secret: bytes | None = None
-) -> DaemonStats:
-    """Plan, synthesise, open the recorder and the bus, run, finish the file. Returns the
-    run's counts (``end_reason`` among them); the log is at ``log_path``."""
+def run_daemon(config: Config, log_path: Path, config_path: str | None) -> Path:
+    """Plan, synthesise, open the recorder and the bus, run, finish the file. Returns the log."""
     design = controller_design(config)  # before touching the bus: a bad config fails fast
     # The recorder's writer thread shares the GIL; switching sooner bounds how long it can
     # hold up the control loop's wake-up (measured: p99 lateness roughly halved).
@@ -74,7 +62,6 @@ def run_daemon(
                 "period_ns": str(config.controller.period_ns),
                 "sensor_period_ns": str(1_000_000_000 // config.plant.sensor_rate_hz),
                 "bus": f"{config.bus.interface}:{config.bus.channel}",
-                "authenticated": str(config.bus.authenticated).lower(),
                 **{f"scheduling_{key}": value for key, value in scheduling.items()},
             },
         },
@@ -82,18 +69,10 @@ def run_daemon(
     )
     stop = StopFlag().install()
     summary: dict[str, str] = {}
-    stats: DaemonStats | None = None
     try:
-        auth = None
-        if config.bus.authenticated:
-            if secret is None:
-                raise BusError(NO_SECRET.format(bus=config.bus.interface))
-            auth = FrameAuthenticator(secret)
         bus = open_bus(config.bus)
         try:
-            daemon = ControllerDaemon(
-                config, design, bus, contract, RunRecording(recorder), stop, auth
-            )
+            daemon = ControllerDaemon(config, design, bus, contract, RunRecording(recorder), stop)
             settle_heap()
             try:
                 stats = daemon.run()
@@ -105,5 +84,4 @@ def run_daemon(
     finally:
         summary["recorder_dropped"] = str(recorder.dropped)
         recorder.close(summary=summary)
-    assert stats is not None
-    return stats
+    return log_path
