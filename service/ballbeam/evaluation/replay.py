@@ -51,16 +51,20 @@ class VerifyResult:
 
 
 def verify(run_log: RunLog) -> VerifyResult:
+    config: Config | None = None
+    config_error = "no recorded config"
     text = run_log.metadata.get("config", {}).get("json")
-    if text is None:
-        raise LogFormatError(f"{run_log.path}: no recorded config, cannot re-run the controller")
-    try:
-        data = json.loads(text)
-        if not isinstance(data, dict):
-            raise ValueError("not a JSON object")
-        config = config_from_mapping(data, f"{run_log.path} (recorded config)")
-    except (ValueError, RecursionError) as error:
-        raise LogFormatError(f"{run_log.path}: recorded config unusable: {error}") from error
+    if text is not None:
+        try:
+            data = json.loads(text)
+            if not isinstance(data, dict):
+                raise ValueError("not a JSON object")
+            config = config_from_mapping(data, f"{run_log.path} (recorded config)")
+        except (ValueError, RecursionError) as error:
+            config_error = f"recorded config unusable: {error}"
+    if config is None and design_record.ATTACHMENT_NAME not in run_log.attachments:
+        # Nothing to re-run: no design in the log, and no config to rebuild it from.
+        raise LogFormatError(f"{run_log.path}: {config_error}, cannot re-run the controller")
     for topic in VERIFY_TOPICS:
         if topic not in run_log.topics:
             raise LogFormatError(f"{run_log.path}: no {topic} channel, cannot verify")
@@ -103,13 +107,18 @@ def verify(run_log: RunLog) -> VerifyResult:
 
 
 def _designs(
-    run_log: RunLog, config: Config
+    run_log: RunLog, config: Config | None
 ) -> tuple[ControllerDesign, str, float | str | None]:
-    """The design to replay, where it came from, and how today's synthesis compares."""
+    """The design to replay, where it came from, and how today's synthesis compares (a log
+    from another version verifies on its recorded design even where today's code refuses its
+    config)."""
     data = run_log.attachments.get(design_record.ATTACHMENT_NAME)
     if data is None:
+        assert config is not None  # verify() refuses a log with neither
         return controller_design(config), "resynthesised", None
     recorded = design_record.decode_design(data, f"{run_log.path}")
+    if config is None:
+        return recorded, "recorded", "cannot re-synthesise: the recorded config is unusable today"
     try:
         difference: float | str = design_record.design_difference(
             recorded, controller_design(config)
