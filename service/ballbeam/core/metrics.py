@@ -49,14 +49,21 @@ class RunMetrics:
         return asdict(self)
 
 
-def settle_time(time_s: np.ndarray, position_m: np.ndarray, band_m: float) -> float | None:
-    outside = np.flatnonzero(np.abs(position_m) > band_m)
-    if outside.size == 0:
+def inside_from(time_s: np.ndarray, outside: np.ndarray) -> float | None:
+    """First time after which ``outside`` (N,) is False to the end; None if the last sample is
+    outside."""
+    indices = np.flatnonzero(outside)
+    if indices.size == 0:
         return float(time_s[0])
-    last = int(outside[-1])
+    last = int(indices[-1])
     if last == len(time_s) - 1:
         return None
     return float(time_s[last + 1])
+
+
+def settle_time(time_s: np.ndarray, position_m: np.ndarray, band_m: float) -> float | None:
+    """First time after which |x| stays within ``band_m`` to the end."""
+    return inside_from(time_s, np.abs(position_m) > band_m)
 
 
 def rest_time(
@@ -67,16 +74,9 @@ def rest_time(
 ) -> float | None:
     """First time after which |x| <= position band and |θ| <= angle band to the end; None if
     the last sample is outside either."""
-    outside = (np.abs(true_states[:, 3]) > position_band_m) | (
-        np.abs(true_states[:, 0]) > theta_band_rad
-    )
-    at_rest = np.flatnonzero(outside)
-    if at_rest.size == 0:
-        return float(time_s[0])
-    last = int(at_rest[-1])
-    if last == len(time_s) - 1:
-        return None
-    return float(time_s[last + 1])
+    away_m = np.abs(true_states[:, 3]) > position_band_m
+    tilted = np.abs(true_states[:, 0]) > theta_band_rad
+    return inside_from(time_s, away_m | tilted)
 
 
 def total_variation(values: np.ndarray) -> float:
