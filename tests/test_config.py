@@ -160,3 +160,15 @@ def test_fuzzed_overrides_either_load_or_raise_config_error(key: str, value: str
     else:
         assert isinstance(config, Config)
         assert math.isfinite(config.run.duration_s)
+
+
+@pytest.mark.parametrize(
+    ("override", "fragment"),
+    [
+        ("tracker.rest_theta_near_deg=5", "rest_theta_near_deg must be below"),
+        ("tracker.rest_position_far_m=0.0005", "rest_position_near_m must be below"),
+    ],
+)
+def test_rest_bands_must_be_ordered(override: str, fragment: str) -> None:
+    with pytest.raises(ConfigError, match=fragment):
+        load_config(None, [override])

@@ -14,13 +14,13 @@ from ballbeam.config import Config
 from ballbeam.core.control import ControllerDesign, ObserverLaw, RestGains
 from ballbeam.core.guard import AngleGuard, make_angle_guard, make_soft_cap
 from ballbeam.core.metrics import RunMetrics, compute_metrics
-from ballbeam.core.model import LinearModel, PhysicalConstants
+from ballbeam.core.model import LinearModel, PhysicalConstants, as_row4
 from ballbeam.core.observer import design_observer
 from ballbeam.core.planning.plan import Plan
 from ballbeam.core.plant import ADC_COUNT_LIMIT, EmulatedPlant, PlantPhysics
 from ballbeam.core.simulate import SimulationTrace, simulate_closed_loop
 from ballbeam.core.tracker import stationary_gain, synthesize_discrete
-from ballbeam.errors import ConfigError, PlanningError
+from ballbeam.errors import PlanningError
 
 DEFAULT_POSITION_NOISE_M = 2e-4
 
@@ -160,8 +160,7 @@ def controller_design(config: Config, plan: Plan | None = None) -> ControllerDes
         rest_from_cycle=rest_from_cycle,
         rest_observer=rest_observer,
         rest_gains=rest_gains,
-        initial_state=(float(initial[0]), float(initial[1]), float(initial[2]),
-                       float(initial[3])),
+        initial_state=as_row4(initial),
         angle_per_count=constants.angle_sensor_gain * encoder_step_rad,
         position_per_count=constants.position_sensor_gain * adc_step_m,
     )
@@ -170,21 +169,16 @@ def controller_design(config: Config, plan: Plan | None = None) -> ControllerDes
 def _rest_gains(config: Config, model: LinearModel, from_cycle: int) -> RestGains:
     tracker_cfg = config.tracker
     period_s = config.controller.period_s
-    if not (
-        0.0 <= tracker_cfg.rest_theta_near_deg < tracker_cfg.rest_theta_far_deg
-        and 0.0 <= tracker_cfg.rest_position_near_m < tracker_cfg.rest_position_far_m
-    ):
-        raise ConfigError("tracker rest bands must be 0 <= near < far")
     rest_gain, _ = stationary_gain(
         model, np.diag(tracker_cfg.rest_q), np.array([[tracker_cfg.rest_r]]), period_s
     )
     far_gain = None
     if tracker_cfg.far_q is not None:
-        far_gain = _row4(stationary_gain(
+        far_gain = as_row4(stationary_gain(
             model, np.diag(tracker_cfg.far_q), np.array([[tracker_cfg.far_r]]), period_s
         )[0][0])
     return RestGains(
-        gain=_row4(rest_gain[0]),
+        gain=as_row4(rest_gain[0]),
         far_gain=far_gain,
         from_cycle=max(from_cycle, 0),
         blend_cycles=max(round(tracker_cfg.rest_blend_s / period_s), 1),
@@ -233,11 +227,6 @@ def _angle_guard(config: Config, model: LinearModel) -> AngleGuard:
         Bd=discrete.Bd,
         soft=soft,
     )
-
-
-def _row4(values: np.ndarray) -> tuple[float, float, float, float]:
-    a, b, c, d = (float(value) for value in values)
-    return (a, b, c, d)
 
 
 def plant_parameters(config: Config) -> EmulatedPlant:

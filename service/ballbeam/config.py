@@ -131,6 +131,14 @@ class TrackerSection(_Section):
     rest_position_near_m: float = Field(0.001, ge=0, description="rest gains alone within |x| <")
     rest_position_far_m: float = Field(0.003, gt=0, description="tracking gains beyond |x| >")
 
+    @model_validator(mode="after")
+    def _rest_bands(self) -> TrackerSection:
+        if not self.rest_theta_near_deg < self.rest_theta_far_deg:
+            raise ValueError("rest_theta_near_deg must be below rest_theta_far_deg")
+        if not self.rest_position_near_m < self.rest_position_far_m:
+            raise ValueError("rest_position_near_m must be below rest_position_far_m")
+        return self
+
     @field_validator("q", "rest_q", "far_q")
     @classmethod
     def _q_positive_semidefinite(cls, q: tuple[float, ...] | None) -> tuple[float, ...] | None:

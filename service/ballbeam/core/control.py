@@ -13,7 +13,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ballbeam.core.guard import AngleGuard, Row4, guarded_voltage
+from ballbeam.core.guard import AngleGuard, guarded_voltage
+from ballbeam.core.model import Row4, as_row4
 from ballbeam.core.plant import SensorReading
 from ballbeam.errors import ConfigError
 
@@ -40,7 +41,7 @@ class ObserverLaw:
         ):
             raise ConfigError("the observer needs Ad (4, 4), Bd (4,), C (2, 4) and L (4, 2)")
         return cls(
-            Ad=_rows4(Ad), Bd=_tuple4(Bd.reshape(-1)), C=(_tuple4(C[0]), _tuple4(C[1])),
+            Ad=_rows4(Ad), Bd=as_row4(Bd.reshape(-1)), C=(as_row4(C[0]), as_row4(C[1])),
             L=tuple((float(a), float(b)) for a, b in L),  # type: ignore[arg-type]
         )
 
@@ -115,6 +116,8 @@ class ControllerDesign:
     _gain_rows: tuple[Row4, ...] = field(init=False, repr=False, compare=False)
     _offsets: tuple[float, ...] = field(init=False, repr=False, compare=False)
     _final_row: Row4 = field(init=False, repr=False, compare=False)
+    _reference_rows: tuple[Row4, ...] = field(init=False, repr=False, compare=False)
+    _reference_inputs: tuple[float, ...] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         N = self.offset_v.shape[0]
@@ -133,7 +136,10 @@ class ControllerDesign:
             array.setflags(write=False)
         object.__setattr__(self, "_gain_rows", tuple(map(tuple, self.gains.tolist())))
         object.__setattr__(self, "_offsets", tuple(self.offset_v.tolist()))
-        object.__setattr__(self, "_final_row", _tuple4(self.final_gain))
+        object.__setattr__(self, "_final_row", as_row4(self.final_gain))
+        references = tuple(map(tuple, self.reference_states.tolist()))
+        object.__setattr__(self, "_reference_rows", references)
+        object.__setattr__(self, "_reference_inputs", tuple(self.reference_input_v.tolist()))
 
     @property
     def n_steps(self) -> int:
@@ -148,7 +154,7 @@ class ControllerDesign:
 
     def reference(self, cycle: int) -> tuple[Row4, float]:
         if cycle < self.n_steps:
-            return _tuple4(self.reference_states[cycle]), float(self.reference_input_v[cycle])
+            return self._reference_rows[cycle], self._reference_inputs[cycle]
         return (0.0, 0.0, 0.0, 0.0), 0.0
 
     def tracker_input(self, cycle: int, estimate: Row4) -> float:
@@ -174,16 +180,14 @@ class ControllerDesign:
             return self.rest_observer
         return self.observer
 
-    def compensated(self, voltage_v: float) -> tuple[float, float]:
-        """The command sent for a demand, and the drive the motor is believed to receive."""
+    def compensated(self, voltage_v: float) -> float:
+        """The command sent for a demand (dead-zone compensation with a band)."""
         band, deadzone, limit = self.deadband_v, self.deadzone_v, self.voltage_limit_v
         if voltage_v > band:
-            sent = min(voltage_v + (deadzone - band), limit)
-            return sent, (sent - deadzone if sent > deadzone else 0.0)
+            return min(voltage_v + (deadzone - band), limit)
         if voltage_v < -band:
-            sent = max(voltage_v - (deadzone - band), -limit)
-            return sent, (sent + deadzone if sent < -deadzone else 0.0)
-        return 0.0, 0.0
+            return max(voltage_v - (deadzone - band), -limit)
+        return 0.0
 
     def modelled_drive_v(self, sent_v: float) -> float:
         """The drive a motor with the modelled dead zone receives for a sent voltage."""
@@ -245,7 +249,7 @@ def initial_estimate(observer: ObserverLaw, measurement: Row2, prior_state: Row4
         for j, gain in enumerate(row):
             if gain != 0.0:
                 estimate[j] = value / gain
-    return _tuple4(estimate)
+    return as_row4(estimate)
 
 
 def control_cycle(
@@ -269,8 +273,9 @@ def control_cycle(
     else:
         limit = design.voltage_limit_v
         capped_v = min(max(requested_v, -limit), limit)
-    voltage_v, drive_v = design.compensated(capped_v)
-    prediction = predict(design.observer, estimate, drive_v)
+    voltage_v = design.compensated(capped_v)
+    # Rest and tracking observers share Ad, Bd: predicting with either is the same.
+    prediction = predict(design.observer, estimate, design.modelled_drive_v(voltage_v))
     return (
         ControllerState(cycle=state.cycle + 1, prediction=prediction),
         CycleOutput(voltage_v, requested_v, estimate, reading is not None),
@@ -291,11 +296,6 @@ def coast_cycles(
     return ControllerState(cycle=state.cycle + count, prediction=prediction)
 
 
-def _tuple4(values: np.ndarray | list[float] | tuple[float, ...]) -> Row4:
-    a, b, c, d = (float(value) for value in values)
-    return (a, b, c, d)
-
-
 def _rows4(matrix: np.ndarray) -> tuple[Row4, Row4, Row4, Row4]:
-    a, b, c, d = (_tuple4(row) for row in matrix)
+    a, b, c, d = (as_row4(row) for row in matrix)
     return (a, b, c, d)

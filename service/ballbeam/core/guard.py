@@ -33,12 +33,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ballbeam.core.model import Row4, as_row4
+
 BISECTION_STEPS = 40
 STOPPING_TABLE_STEP_RAD_S = 0.01  # interpolation error ≤ step²/(8·α·V_brake) ≈ 2e-8 rad
 STOPPING_TABLE_SLEW_MULTIPLE = 3.0  # the table covers 3× the motor's top speed
 ALLOWED_RATE_POINTS = 256  # ω_a(gap) over gaps 0..2·θ_s
 
-Row4 = tuple[float, float, float, float]
 
 
 @dataclass(frozen=True)
@@ -110,8 +111,8 @@ def make_angle_guard(
     return AngleGuard(
         theta_limit_rad=float(theta_limit_rad),
         voltage_limit_v=float(voltage_limit_v),
-        theta_row=_row(Ad[0]),
-        rate_row=_row(Ad[1]),
+        theta_row=as_row4(Ad[0]),
+        rate_row=as_row4(Ad[1]),
         theta_per_v=float(Bd[0, 0]),
         rate_per_v=float(Bd[1, 0]),
         rate_step_rad_s=STOPPING_TABLE_STEP_RAD_S,
@@ -133,24 +134,18 @@ def make_soft_cap(
     """The soft cap at ±``theta_limit_rad``: ω_a(gap) solves d(ω) = gap on a uniform gap grid
     (d is increasing: by bisection here, at design time)."""
     gap_step = 2.0 * theta_limit_rad / (ALLOWED_RATE_POINTS - 1)
-    a, c = alpha_beta, alpha * brake_v
+    gaps = np.arange(ALLOWED_RATE_POINTS) * gap_step
 
-    def distance(rate: float) -> float:  # d(ω), design time only
-        return rate / a - (c / (a * a)) * math.log1p(a * rate / c)
+    def distance(rate: np.ndarray) -> np.ndarray:
+        return exact_stopping_distance_rad(alpha, alpha_beta, brake_v, rate)
 
-    allowed = []
-    for i in range(ALLOWED_RATE_POINTS):
-        gap = i * gap_step
-        low, high = 0.0, 1.0
-        while distance(high) < gap:
-            high *= 2.0
-        for _ in range(80):
-            middle = 0.5 * (low + high)
-            if distance(middle) <= gap:
-                low = middle
-            else:
-                high = middle
-        allowed.append(low)
+    low, high = np.zeros_like(gaps), np.ones_like(gaps)
+    while np.any(short := distance(high) < gaps):
+        high = np.where(short, 2.0 * high, high)
+    for _ in range(80):
+        middle = 0.5 * (low + high)
+        inside = distance(middle) <= gaps
+        low, high = np.where(inside, middle, low), np.where(inside, high, middle)
     return SoftCap(
         theta_limit_rad=float(theta_limit_rad),
         zone_gain_per_s=float(zone_gain_per_s),
@@ -158,7 +153,7 @@ def make_soft_cap(
         alpha=float(alpha),
         alpha_beta=float(alpha_beta),
         gap_step_rad=float(gap_step),
-        allowed_rate_rad_s=tuple(allowed),
+        allowed_rate_rad_s=tuple(low.tolist()),
     )
 
 
@@ -184,11 +179,6 @@ def soft_cap_v(soft: SoftCap, theta_rad: float, rate_rad_s: float) -> float:
     # θ̈ = −αβ θ̇ + α u is asked to be dω_a/dt + κ (ω_a − θ̇), with dω_a/dt = −ω_a'·θ̇.
     accel = -slope * rate_rad_s + soft.rate_gain_per_s * (allowed - rate_rad_s)
     return (soft.alpha_beta * rate_rad_s + accel) / soft.alpha
-
-
-def _row(values: np.ndarray) -> Row4:
-    a, b, c, d = (float(value) for value in values)
-    return (a, b, c, d)
 
 
 def stopping_distance_rad(guard: AngleGuard, rate_rad_s: float) -> float:

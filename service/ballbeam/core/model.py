@@ -17,6 +17,16 @@ from ballbeam.errors import ConfigError
 N_STATES = 4
 THETA, THETA_RATE, BALL_VELOCITY, BALL_POSITION = range(N_STATES)
 
+# A state (or a row of a 4-column matrix) as plain Python floats: what the per-cycle law
+# computes with (a fixed order of IEEE operations, no BLAS: the same bits on every CPU).
+Row4 = tuple[float, float, float, float]
+
+
+def as_row4(values: np.ndarray | list[float] | tuple[float, ...]) -> Row4:
+    """Four numbers as a Row4 of Python floats (exact: float64 → float)."""
+    a, b, c, d = (float(value) for value in values)
+    return (a, b, c, d)
+
 
 @dataclass(frozen=True)
 class PhysicalConstants:

@@ -54,6 +54,7 @@ import numpy as np
 
 from ballbeam.core.control import ControllerDesign, ObserverLaw, RestGains
 from ballbeam.core.guard import AngleGuard, SoftCap
+from ballbeam.core.model import Row4, as_row4
 from ballbeam.errors import LogFormatError
 
 ATTACHMENT_NAME = "controller_design.npz"
@@ -246,8 +247,7 @@ def _table(array: np.ndarray, what: str) -> tuple[float, ...]:
     return tuple(array.tolist())
 
 
-def _four(array: np.ndarray) -> tuple[float, float, float, float]:
+def _four(array: np.ndarray) -> Row4:
     if array.shape != (4,):
         raise ValueError(f"expected 4 values, got shape {array.shape}")
-    a, b, c, d = array.tolist()
-    return (a, b, c, d)
+    return as_row4(array)
