@@ -11,7 +11,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from ballbeam.config import Config
-from ballbeam.core.control import ControllerDesign, ObserverLaw, RestGains
+from ballbeam.core.control import (
+    BallGainAdaptation,
+    ControllerDesign,
+    ObserverLaw,
+    RestGains,
+)
 from ballbeam.core.guard import AngleGuard, make_angle_guard, make_soft_cap
 from ballbeam.core.metrics import RunMetrics, compute_metrics
 from ballbeam.core.model import LinearModel, PhysicalConstants, as_row4
@@ -160,9 +165,28 @@ def controller_design(config: Config, plan: Plan | None = None) -> ControllerDes
         rest_from_cycle=rest_from_cycle,
         rest_observer=rest_observer,
         rest_gains=rest_gains,
+        adaptation=_ball_gain_adaptation(config, model, rest_from_cycle, position_noise_m),
         initial_state=as_row4(initial),
         angle_per_count=constants.angle_sensor_gain * encoder_step_rad,
         position_per_count=constants.position_sensor_gain * adc_step_m,
+    )
+
+
+def _ball_gain_adaptation(
+    config: Config, model: LinearModel, until_cycle: int, position_noise_m: float
+) -> BallGainAdaptation | None:
+    tracker_cfg = config.tracker
+    if not tracker_cfg.adapt_ball_gain:
+        return None
+    return BallGainAdaptation(
+        design_gamma=float(model.A[2, 0]),
+        position_noise_m=position_noise_m,
+        confidence=tracker_cfg.ball_gain_confidence,
+        min_ratio=tracker_cfg.ball_gain_ratio_min,
+        max_ratio=tracker_cfg.ball_gain_ratio_max,
+        period_s=config.controller.period_s,
+        until_cycle=until_cycle,
+        back_emf_v_s_per_rad=float(-model.A[1, 1] / model.B[1, 0]),
     )
 
 

@@ -131,6 +131,21 @@ class TrackerSection(_Section):
     rest_position_near_m: float = Field(0.001, ge=0, description="rest gains alone within |x| <")
     rest_position_far_m: float = Field(0.003, gt=0, description="tracking gains beyond |x| >")
 
+    adapt_ball_gain: bool = Field(
+        False, description="estimate the ball's gain while the plan runs; follow the path at "
+        "the pace it allows and predict with it"
+    )
+    ball_gain_confidence: float = Field(
+        0.01, gt=0, le=1, description="ball-gain estimate used once its relative standard "
+        "error is below this"
+    )
+    ball_gain_ratio_min: float = Field(
+        0.5, gt=0, le=1, description="ball-gain estimate: smallest ratio to the model's used"
+    )
+    ball_gain_ratio_max: float = Field(
+        1.5, ge=1, le=4, description="ball-gain estimate: largest ratio to the model's used"
+    )
+
     @model_validator(mode="after")
     def _rest_bands(self) -> TrackerSection:
         if not self.rest_theta_near_deg < self.rest_theta_far_deg:

@@ -9,6 +9,7 @@ the bit on every machine, so a recorded design replays identically wherever it i
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -78,6 +79,81 @@ class RestGains:
         return min(max(max(ramp, theta, position), 0.0), 1.0)
 
 
+FitSums = tuple[float, ...]  # see BallGainAdaptation.add_sample, .advance
+EMPTY_FIT: FitSums = (0.0,) * 12
+
+
+@dataclass(frozen=True)
+class BallGainAdaptation:
+    """The ball's gain γ (ẍ = γ·θ) estimated while the plan runs, and the path followed at the
+    pace that gain allows.
+
+    A minimum-time path asks for the full angle on its arcs; a ball that rolls slower or faster
+    than the model (a ball-gain error, the sine of a large angle) cannot follow it in time, and
+    a tracker that insists rides the limit past the plan's switch and overshoots. A path's
+    accelerations scale with the square of the pace at which it is played, so played at pace
+    √(γ̂/γ) it asks of the true ball exactly the angles it asked of the model: the path stays
+    the plan's, only its clock (τ, in cycles) runs at that pace. The observer predicts with γ̂.
+
+    The ball's position is x(t) = x0 + v0·t + γ·G(t), G the double integral of the measured
+    angle, so regressing the measured position on (1, t, G) gives γ with x0 and v0 (no
+    differentiation of a noisy signal). The sums of the normal equations are the state; the
+    3 × 3 solve is Cramer's rule, plain floats. The estimate counts once its standard error
+    (from the design's position noise) is below ``confidence`` of |γ_design|; it is used only
+    while the plan runs (afterwards the angle stays small and says little about γ).
+    """
+
+    design_gamma: float  # γ of the design model [m/s² per rad]
+    position_noise_m: float
+    confidence: float  # relative standard error below which the estimate is used
+    min_ratio: float
+    max_ratio: float
+    period_s: float
+    until_cycle: int  # the plan's end (path cycles)
+    back_emf_v_s_per_rad: float  # β of the servo model (θ̈ = α·u − αβ·θ̇): the pace's feedforward
+
+    def pace(self, ratio: float) -> float:
+        return math.sqrt(ratio) if ratio != 1.0 else 1.0
+
+    def add_sample(self, sums: FitSums, position_m: float) -> FitSums:
+        """Accumulate the normal equations with a measured position at the current instant."""
+        (n, s_t, s_tt, s_g, s_tg, s_gg, s_x, s_tx, s_gx, t, g1, g) = sums
+        return (
+            n + 1.0, s_t + t, s_tt + t * t, s_g + g, s_tg + t * g, s_gg + g * g,
+            s_x + position_m, s_tx + t * position_m, s_gx + g * position_m, t, g1, g,
+        )
+
+    def advance(self, sums: FitSums, theta_rad: float) -> FitSums:
+        """One period on: t, and the angle held over it integrated twice (exactly, as the
+        zero-order hold the plant sees). Every cycle advances, measured or not, so that t and G
+        are the plant's whatever frames were lost or periods skipped."""
+        dt = self.period_s
+        t, g1, g2 = sums[9:]
+        return (
+            *sums[:9], t + dt, g1 + theta_rad * dt, g2 + g1 * dt + 0.5 * theta_rad * dt * dt
+        )
+
+    def ratio(self, sums: FitSums) -> float:
+        """γ̂ / γ_design once the fit is confident, else 1."""
+        (n, s_t, s_tt, s_g, s_tg, s_gg, s_x, s_tx, s_gx) = sums[:9]
+        # Cofactors of the symmetric normal matrix [[n, s_t, s_g], [s_t, s_tt, s_tg],
+        # [s_g, s_tg, s_gg]].
+        c00 = s_tt * s_gg - s_tg * s_tg
+        c01 = s_tg * s_g - s_t * s_gg
+        c02 = s_t * s_tg - s_tt * s_g
+        det = n * c00 + s_t * c01 + s_g * c02
+        if det <= 0.0:
+            return 1.0
+        c22 = n * s_tt - s_t * s_t
+        c12 = s_t * s_g - n * s_tg
+        gamma = (c02 * s_x + c12 * s_tx + c22 * s_gx) / det
+        variance = self.position_noise_m * self.position_noise_m * c22 / det
+        design = self.design_gamma
+        if variance < 0.0 or variance > (self.confidence * design) ** 2:
+            return 1.0
+        return min(max(gamma / design, self.min_ratio), self.max_ratio)
+
+
 @dataclass(frozen=True)
 class ControllerDesign:
     """Everything a cycle needs, computed once before the run (and recorded with it).
@@ -109,6 +185,7 @@ class ControllerDesign:
     rest_from_cycle: int
     rest_observer: ObserverLaw | None
     rest_gains: RestGains | None
+    adaptation: BallGainAdaptation | None  # None: the design's ball gain, the plan's pace
     initial_state: Row4  # the planned start: supplies the rates no sensor measures
     angle_per_count: float  # measurement units (57·θ) per encoder count
     position_per_count: float  # measurement units (100·x) per ADC count
@@ -152,18 +229,45 @@ class ControllerDesign:
             reading.position_counts * self.position_per_count,
         )
 
-    def reference(self, cycle: int) -> tuple[Row4, float]:
-        if cycle < self.n_steps:
-            return self._reference_rows[cycle], self._reference_inputs[cycle]
-        return (0.0, 0.0, 0.0, 0.0), 0.0
+    def reference(self, position: float) -> tuple[Row4, float]:
+        """x_d and u_d at path position ``position`` (cycles, interpolated between rows)."""
+        index = int(position)
+        n = self.n_steps
+        if index >= n:
+            return (0.0, 0.0, 0.0, 0.0), 0.0
+        rows, inputs = self._reference_rows, self._reference_inputs
+        if index + 1 >= n:
+            return rows[index], inputs[index]
+        f = position - index
+        (a0, a1, a2, a3), (b0, b1, b2, b3) = rows[index], rows[index + 1]
+        u0, u1 = inputs[index], inputs[index + 1]
+        return (
+            a0 + f * (b0 - a0), a1 + f * (b1 - a1), a2 + f * (b2 - a2), a3 + f * (b3 - a3)
+        ), u0 + f * (u1 - u0)
 
-    def tracker_input(self, cycle: int, estimate: Row4) -> float:
-        """The tracker's demand [V] at ``cycle`` (unclamped); beyond the horizon the
-        stationary regulator; after the plan blended with the rest gains."""
+    def tracker_input(self, position: float, estimate: Row4, pace: float = 1.0) -> float:
+        """The tracker's demand [V] at path position ``position`` (unclamped); beyond the
+        horizon the stationary regulator; after the plan blended with the rest gains.
+
+        At a pace other than 1 the path is followed time-scaled: its rates (θ̇_d, ẋ_d) scale
+        with the pace and the servo's feedforward u_d = (θ̈_d + αβ·θ̇_d)/α with them (θ̈_d with
+        the pace squared)."""
         x0, x1, x2, x3 = estimate
-        inside = cycle < self.n_steps
-        offset = self._offsets[cycle] if inside else 0.0
-        k0, k1, k2, k3 = self._gain_rows[cycle] if inside else self._final_row
+        cycle = int(position)
+        if cycle + 1 < self.n_steps:
+            f = position - cycle
+            o0, o1 = self._offsets[cycle], self._offsets[cycle + 1]
+            offset = o0 + f * (o1 - o0)
+            (a0, a1, a2, a3), (b0, b1, b2, b3) = self._gain_rows[cycle], self._gain_rows[cycle + 1]
+            k0, k1, k2, k3 = a0 + f * (b0 - a0), a1 + f * (b1 - a1), a2 + f * (b2 - a2), (
+                a3 + f * (b3 - a3)
+            )
+        elif cycle < self.n_steps:
+            offset = self._offsets[cycle]
+            k0, k1, k2, k3 = self._gain_rows[cycle]
+        else:
+            offset = 0.0
+            k0, k1, k2, k3 = self._final_row
         rest = self.rest_gains
         if rest is not None and cycle >= rest.from_cycle:
             if rest.far_gain is not None:
@@ -173,7 +277,15 @@ class ControllerDesign:
             k0, k1, k2, k3 = r0 + w * (k0 - r0), r1 + w * (k1 - r1), r2 + w * (k2 - r2), (
                 r3 + w * (k3 - r3)
             )
-        return offset - (k0 * x0 + k1 * x1 + k2 * x2 + k3 * x3)
+        demand = offset - (k0 * x0 + k1 * x1 + k2 * x2 + k3 * x3)
+        if pace == 1.0 or cycle >= self.n_steps or self.adaptation is None:
+            return demand
+        (_, theta_rate, ball_rate, _), input_v = self.reference(position)
+        slower = pace - 1.0
+        feedforward_v = slower * (pace + 1.0) * input_v + pace * (1.0 - pace) * (
+            self.adaptation.back_emf_v_s_per_rad * theta_rate
+        )
+        return demand + slower * (k1 * theta_rate + k2 * ball_rate) + feedforward_v
 
     def observer_at(self, cycle: int) -> ObserverLaw:
         if self.rest_observer is not None and cycle >= self.rest_from_cycle:
@@ -203,6 +315,9 @@ class ControllerDesign:
 class ControllerState:
     cycle: int = 0
     prediction: Row4 | None = None  # x̄[k | k−1]; None before the first measurement
+    path_position: float = 0.0  # τ: where on the reference (in cycles) this cycle tracks
+    fit: FitSums = EMPTY_FIT  # the ball-gain fit's sums
+    ball_gain_ratio: float = 1.0  # γ̂ / γ_design: scales the observer's ball rows and the pace
 
 
 @dataclass(frozen=True)
@@ -211,18 +326,28 @@ class CycleOutput:
     requested_v: float  # the tracker's unclamped demand
     estimate: Row4  # x̂[k | k]
     measured: bool  # False when the cycle coasted on the observer
+    reference: Row4  # x_d tracked this cycle
+    reference_input_v: float  # u_d at the same path position
 
 
-def predict(observer: ObserverLaw, estimate: Row4, input_v: float) -> Row4:
-    """x̄ = Ad x̂ + Bd u."""
+def predict(observer: ObserverLaw, estimate: Row4, input_v: float, ball_ratio: float = 1.0) -> Row4:
+    """x̄ = Ad x̂ + Bd u; ``ball_ratio`` scales the ball's response to the servo (rows 2 and 3's
+    angle and input terms: the ball's gain γ enters the exact discretisation only there)."""
     x0, x1, x2, x3 = estimate
     (a0, a1, a2, a3), (b0, b1, b2, b3), (c0, c1, c2, c3), (d0, d1, d2, d3) = observer.Ad
     e0, e1, e2, e3 = observer.Bd
+    if ball_ratio == 1.0:
+        return (
+            a0 * x0 + a1 * x1 + a2 * x2 + a3 * x3 + e0 * input_v,
+            b0 * x0 + b1 * x1 + b2 * x2 + b3 * x3 + e1 * input_v,
+            c0 * x0 + c1 * x1 + c2 * x2 + c3 * x3 + e2 * input_v,
+            d0 * x0 + d1 * x1 + d2 * x2 + d3 * x3 + e3 * input_v,
+        )
     return (
         a0 * x0 + a1 * x1 + a2 * x2 + a3 * x3 + e0 * input_v,
         b0 * x0 + b1 * x1 + b2 * x2 + b3 * x3 + e1 * input_v,
-        c0 * x0 + c1 * x1 + c2 * x2 + c3 * x3 + e2 * input_v,
-        d0 * x0 + d1 * x1 + d2 * x2 + d3 * x3 + e3 * input_v,
+        ball_ratio * (c0 * x0 + c1 * x1 + e2 * input_v) + (c2 * x2 + c3 * x3),
+        ball_ratio * (d0 * x0 + d1 * x1 + e3 * input_v) + (d2 * x2 + d3 * x3),
     )
 
 
@@ -265,9 +390,24 @@ def control_cycle(
     elif reading is None:
         estimate = state.prediction  # coast on the model
     else:
-        observer = design.observer_at(state.cycle)
+        observer = design.observer_at(int(state.path_position))
         estimate = correct(observer, state.prediction, design.measurement(reading))
-    requested_v = design.tracker_input(state.cycle, estimate)
+    position = state.path_position
+    reference, reference_input_v = design.reference(position)
+    fit, ratio = state.fit, state.ball_gain_ratio
+    adaptation = design.adaptation
+    pace = 1.0
+    if adaptation is not None:
+        if position < adaptation.until_cycle:
+            theta_rad = estimate[0]
+            if reading is not None:
+                angle_y, position_y = design.measurement(reading)
+                theta_rad = angle_y / design.observer.C[0][0]
+                fit = adaptation.add_sample(fit, position_y / design.observer.C[1][3])
+                ratio = adaptation.ratio(fit)
+            fit = adaptation.advance(fit, theta_rad)
+        pace = adaptation.pace(ratio)
+    requested_v = design.tracker_input(position, estimate, pace)
     if design.guard is not None:
         capped_v = guarded_voltage(design.guard, estimate, requested_v)
     else:
@@ -275,10 +415,15 @@ def control_cycle(
         capped_v = min(max(requested_v, -limit), limit)
     voltage_v = design.compensated(capped_v)
     # Rest and tracking observers share Ad, Bd: predicting with either is the same.
-    prediction = predict(design.observer, estimate, design.modelled_drive_v(voltage_v))
+    prediction = predict(design.observer, estimate, design.modelled_drive_v(voltage_v), ratio)
     return (
-        ControllerState(cycle=state.cycle + 1, prediction=prediction),
-        CycleOutput(voltage_v, requested_v, estimate, reading is not None),
+        ControllerState(
+            cycle=state.cycle + 1, prediction=prediction, path_position=position + pace,
+            fit=fit, ball_gain_ratio=ratio,
+        ),
+        CycleOutput(
+            voltage_v, requested_v, estimate, reading is not None, reference, reference_input_v
+        ),
     )
 
 
@@ -286,14 +431,22 @@ def coast_cycles(
     design: ControllerDesign, state: ControllerState, held_voltage_v: float, count: int
 ) -> ControllerState:
     """Advance ``count`` cycles with no measurement and a known held voltage (skipped periods
-    after an overrun, or 0 V while a fault holds the plant)."""
-    if state.prediction is None:
-        raise ValueError("cannot coast before the first measurement")
+    after an overrun, or 0 V while a fault holds the plant); the path's clock runs on.
+    Before the first measurement only the counters advance."""
+    pace = design.adaptation.pace(state.ball_gain_ratio) if design.adaptation else 1.0
     prediction = state.prediction
-    drive_v = design.modelled_drive_v(held_voltage_v)
-    for _ in range(count):
-        prediction = predict(design.observer, prediction, drive_v)
-    return ControllerState(cycle=state.cycle + count, prediction=prediction)
+    fit = state.fit
+    if prediction is not None:
+        drive_v = design.modelled_drive_v(held_voltage_v)
+        for _ in range(count):
+            if design.adaptation is not None:
+                fit = design.adaptation.advance(fit, prediction[0])
+            prediction = predict(design.observer, prediction, drive_v, state.ball_gain_ratio)
+    return ControllerState(
+        cycle=state.cycle + count, prediction=prediction,
+        path_position=state.path_position + count * pace, fit=fit,
+        ball_gain_ratio=state.ball_gain_ratio,
+    )
 
 
 def _rows4(matrix: np.ndarray) -> tuple[Row4, Row4, Row4, Row4]:

@@ -66,10 +66,9 @@ def simulate_closed_loop(
             "peak_abs_theta_rad",
         )
     }
-    for cycle in range(n_cycles):
+    for _ in range(n_cycles):
         reading: SensorReading = read_sensors(params, state, noise_m)
         controller, output = control_cycle(design, controller, reading)
-        reference_state, reference_input_v = design.reference(cycle)
         for name, value in (
             ("true_states", state),
             ("angle_counts", reading.angle_counts),
@@ -77,8 +76,8 @@ def simulate_closed_loop(
             ("estimates", output.estimate),
             ("voltage_v", output.voltage_v),
             ("requested_v", output.requested_v),
-            ("reference_states", reference_state),
-            ("reference_input_v", reference_input_v),
+            ("reference_states", output.reference),
+            ("reference_input_v", output.reference_input_v),
         ):
             columns[name].append(value)
         peak_rad = abs(float(state[0]))

@@ -81,11 +81,7 @@ def verify(run_log: RunLog) -> VerifyResult:
     for index in range(count):
         skipped = int(timing["skipped"][index])
         if skipped:
-            state = (
-                coast_cycles(design, state, held_v, skipped)
-                if state.prediction is not None
-                else ControllerState(cycle=state.cycle + skipped)
-            )
+            state = coast_cycles(design, state, held_v, skipped)
         recorded_v = float(command["voltage_v"][index])
         if command["enable"][index] == 0:
             # A fault cycle: the daemon sent 0 V and coasted its observer on it.

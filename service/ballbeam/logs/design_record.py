@@ -35,6 +35,9 @@ guard_*                              present when the angle guard is on: theta_l
                                      voltage_limit_v, theta_per_v, rate_per_v,
                                      rate_step_rad_s, beyond_slope_s (scalars),
                                      theta_row, rate_row (4,), stopping_rad (M,)
+adapt_*                              present with the ball-gain adaptation: design_gamma,
+                                     position_noise_m, confidence, min_ratio, max_ratio,
+                                     period_s, until_cycle, back_emf_v_s_per_rad (scalars)
 soft_*                               present with the soft cap: theta_limit_rad,
                                      zone_gain_per_s, rate_gain_per_s, alpha,
                                      alpha_beta, gap_step_rad (scalars),
@@ -52,7 +55,7 @@ from typing import Any
 
 import numpy as np
 
-from ballbeam.core.control import ControllerDesign, ObserverLaw, RestGains
+from ballbeam.core.control import BallGainAdaptation, ControllerDesign, ObserverLaw, RestGains
 from ballbeam.core.guard import AngleGuard, SoftCap
 from ballbeam.core.model import Row4, as_row4
 from ballbeam.errors import LogFormatError
@@ -67,6 +70,8 @@ _SCALARS = ("period_s", "plan_duration_s", "voltage_limit_v", "angle_per_count",
 _REST_SCALARS = ("theta_near_rad", "theta_far_rad", "position_near_m", "position_far_m")
 _SOFT_SCALARS = ("theta_limit_rad", "zone_gain_per_s", "rate_gain_per_s", "alpha",
                  "alpha_beta", "gap_step_rad")
+_ADAPT_SCALARS = ("design_gamma", "position_noise_m", "confidence", "min_ratio", "max_ratio",
+                  "period_s", "back_emf_v_s_per_rad")
 _GUARD_SCALARS = ("theta_limit_rad", "voltage_limit_v", "theta_per_v", "rate_per_v",
                   "rate_step_rad_s", "beyond_slope_s")
 
@@ -97,6 +102,10 @@ def encode_design(design: ControllerDesign) -> bytes:
         arrays["rest_blend_cycles"] = _f8(rest.blend_cycles)
         if rest.far_gain is not None:
             arrays["rest_far_gain"] = _f8(rest.far_gain)
+    adaptation = design.adaptation
+    if adaptation is not None:
+        arrays.update({f"adapt_{name}": _f8(getattr(adaptation, name)) for name in _ADAPT_SCALARS})
+        arrays["adapt_until_cycle"] = _f8(adaptation.until_cycle)
     guard = design.guard
     if guard is not None:
         arrays.update({f"guard_{name}": _f8(getattr(guard, name)) for name in _GUARD_SCALARS})
@@ -156,6 +165,12 @@ def decode_design(data: bytes, where: str) -> ControllerDesign:
                 from_cycle=_count(arrays["rest_from_cycle_gains"]),
                 blend_cycles=max(_count(arrays["rest_blend_cycles"]), 1),
             )
+        adaptation = None
+        if "adapt_design_gamma" in arrays:
+            adaptation = BallGainAdaptation(
+                **{name: _scalar(arrays[f"adapt_{name}"]) for name in _ADAPT_SCALARS},
+                until_cycle=_count(arrays["adapt_until_cycle"]),
+            )
         return ControllerDesign(
             **{name: _scalar(arrays[name]) for name in _SCALARS},
             gains=arrays["gains"],
@@ -169,6 +184,7 @@ def decode_design(data: bytes, where: str) -> ControllerDesign:
             rest_from_cycle=_count(arrays["rest_from_cycle"]),
             rest_observer=rest_observer,
             rest_gains=rest_gains,
+            adaptation=adaptation,
         )
     except LogFormatError:
         raise

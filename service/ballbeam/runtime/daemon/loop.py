@@ -181,9 +181,8 @@ class ControllerDaemon:
         self._command(cycle, output.voltage_v, output.requested_v, enable=True)
         at_ns = self.log_time_ns
         self.recording.write(ESTIMATE, at_ns, EstimateRecord(cycle, *output.estimate))
-        reference, reference_input_v = self.design.reference(cycle)
         self.recording.write(
-            REFERENCE, at_ns, ReferenceRecord(cycle, *reference, reference_input_v)
+            REFERENCE, at_ns, ReferenceRecord(cycle, *output.reference, output.reference_input_v)
         )
         self._watch_theta(output.estimate[0])
 
@@ -356,9 +355,6 @@ class ControllerDaemon:
 
     def _coast_skipped(self, count: int) -> None:
         self.cycles_since_sensor += count  # skipped periods brought no sensor frame either
-        if self.state.prediction is None:
-            self.state = ControllerState(cycle=self.state.cycle + count)
-            return
         held_v = self.last_output.voltage_v if self.last_output is not None else 0.0
         if self.in_fault:
             held_v = 0.0
