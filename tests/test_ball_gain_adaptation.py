@@ -39,6 +39,7 @@ def adaptation(confidence: float = 0.01) -> BallGainAdaptation:
         period_s=PERIOD_S,
         until_cycle=10**9,
         back_emf_v_s_per_rad=0.54,
+        pace_step_per_cycle=1e-3,
     )
 
 
@@ -143,3 +144,10 @@ def test_the_plans_clock_overshoots_a_slow_ball() -> None:
 def test_the_nominal_ball_keeps_the_plans_pace() -> None:
     ratio, _ = estimated_ratio_at_plan_end([])
     assert math.sqrt(ratio) == pytest.approx(1.0, abs=0.01)
+
+
+def test_the_pace_changes_by_bounded_steps() -> None:
+    law = adaptation()
+    assert law.pace(0.64, 1.0) == pytest.approx(0.999)
+    assert law.pace(0.64, 0.8005) == pytest.approx(0.8)
+    assert law.pace(1.0, 1.0) == 1.0

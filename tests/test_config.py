@@ -166,7 +166,7 @@ def test_fuzzed_overrides_either_load_or_raise_config_error(key: str, value: str
     ("override", "fragment"),
     [
         ("tracker.rest_theta_near_deg=5", "rest_theta_near_deg must be below"),
-        ("tracker.rest_position_far_m=0.0005", "rest_position_near_m must be below"),
+        ("tracker.rest_position_far_m=0.0002", "rest_position_near_m must be below"),
     ],
 )
 def test_rest_bands_must_be_ordered(override: str, fragment: str) -> None:

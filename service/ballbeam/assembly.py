@@ -187,6 +187,7 @@ def _ball_gain_adaptation(
         period_s=config.controller.period_s,
         until_cycle=until_cycle,
         back_emf_v_s_per_rad=float(-model.A[1, 1] / model.B[1, 0]),
+        pace_step_per_cycle=tracker_cfg.pace_slew_per_s * config.controller.period_s,
     )
 
 

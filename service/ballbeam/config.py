@@ -126,10 +126,10 @@ class TrackerSection(_Section):
         None, description="after the plan, Q of the gains far from rest (None: the tracking q)"
     )
     far_r: float = Field(0.01, gt=0, description="after the plan, R of the gains far from rest")
-    rest_theta_near_deg: float = Field(1.0, ge=0, description="rest gains alone within |θ| <")
-    rest_theta_far_deg: float = Field(3.0, gt=0, description="tracking gains alone beyond |θ| >")
-    rest_position_near_m: float = Field(0.001, ge=0, description="rest gains alone within |x| <")
-    rest_position_far_m: float = Field(0.003, gt=0, description="tracking gains beyond |x| >")
+    rest_theta_near_deg: float = Field(0.5, ge=0, description="rest gains alone within |θ| <")
+    rest_theta_far_deg: float = Field(2.0, gt=0, description="tracking gains alone beyond |θ| >")
+    rest_position_near_m: float = Field(0.0003, ge=0, description="rest gains alone within |x| <")
+    rest_position_far_m: float = Field(0.0008, gt=0, description="tracking gains beyond |x| >")
 
     adapt_ball_gain: bool = Field(
         False, description="estimate the ball's gain while the plan runs; follow the path at "
@@ -141,6 +141,9 @@ class TrackerSection(_Section):
     )
     ball_gain_ratio_min: float = Field(
         0.5, gt=0, le=1, description="ball-gain estimate: smallest ratio to the model's used"
+    )
+    pace_slew_per_s: float = Field(
+        3.0, gt=0, le=1000, description="ball-gain adaptation: how fast the path's pace may change"
     )
     ball_gain_ratio_max: float = Field(
         1.5, ge=1, le=4, description="ball-gain estimate: largest ratio to the model's used"

@@ -112,8 +112,13 @@ class BallGainAdaptation:
     until_cycle: int  # the plan's end (path cycles)
     back_emf_v_s_per_rad: float  # β of the servo model (θ̈ = α·u − αβ·θ̇): the pace's feedforward
 
-    def pace(self, ratio: float) -> float:
-        return math.sqrt(ratio) if ratio != 1.0 else 1.0
+    pace_step_per_cycle: float  # how fast the pace may change (a jump of pace is a step of u)
+
+    def pace(self, ratio: float, previous_pace: float) -> float:
+        """√ratio, approached from the previous cycle's pace by at most one pace step."""
+        target = math.sqrt(ratio) if ratio != 1.0 else 1.0
+        step = self.pace_step_per_cycle
+        return min(max(target, previous_pace - step), previous_pace + step)
 
     def add_sample(self, sums: FitSums, position_m: float) -> FitSums:
         """Accumulate the normal equations with a measured position at the current instant."""
@@ -317,7 +322,8 @@ class ControllerState:
     prediction: Row4 | None = None  # x̄[k | k−1]; None before the first measurement
     path_position: float = 0.0  # τ: where on the reference (in cycles) this cycle tracks
     fit: FitSums = EMPTY_FIT  # the ball-gain fit's sums
-    ball_gain_ratio: float = 1.0  # γ̂ / γ_design: scales the observer's ball rows and the pace
+    ball_gain_ratio: float = 1.0  # γ̂ / γ_design: scales the observer's ball rows
+    pace: float = 1.0  # the path's clock rate: τ advances by this each cycle
 
 
 @dataclass(frozen=True)
@@ -406,7 +412,7 @@ def control_cycle(
                 fit = adaptation.add_sample(fit, position_y / design.observer.C[1][3])
                 ratio = adaptation.ratio(fit)
             fit = adaptation.advance(fit, theta_rad)
-        pace = adaptation.pace(ratio)
+        pace = adaptation.pace(ratio, state.pace)
     requested_v = design.tracker_input(position, estimate, pace)
     if design.guard is not None:
         capped_v = guarded_voltage(design.guard, estimate, requested_v)
@@ -419,7 +425,7 @@ def control_cycle(
     return (
         ControllerState(
             cycle=state.cycle + 1, prediction=prediction, path_position=position + pace,
-            fit=fit, ball_gain_ratio=ratio,
+            fit=fit, ball_gain_ratio=ratio, pace=pace,
         ),
         CycleOutput(
             voltage_v, requested_v, estimate, reading is not None, reference, reference_input_v
@@ -433,7 +439,6 @@ def coast_cycles(
     """Advance ``count`` cycles with no measurement and a known held voltage (skipped periods
     after an overrun, or 0 V while a fault holds the plant); the path's clock runs on.
     Before the first measurement only the counters advance."""
-    pace = design.adaptation.pace(state.ball_gain_ratio) if design.adaptation else 1.0
     prediction = state.prediction
     fit = state.fit
     if prediction is not None:
@@ -444,8 +449,8 @@ def coast_cycles(
             prediction = predict(design.observer, prediction, drive_v, state.ball_gain_ratio)
     return ControllerState(
         cycle=state.cycle + count, prediction=prediction,
-        path_position=state.path_position + count * pace, fit=fit,
-        ball_gain_ratio=state.ball_gain_ratio,
+        path_position=state.path_position + count * state.pace, fit=fit,
+        ball_gain_ratio=state.ball_gain_ratio, pace=state.pace,
     )
 
 

@@ -37,7 +37,8 @@ guard_*                              present when the angle guard is on: theta_l
                                      theta_row, rate_row (4,), stopping_rad (M,)
 adapt_*                              present with the ball-gain adaptation: design_gamma,
                                      position_noise_m, confidence, min_ratio, max_ratio,
-                                     period_s, until_cycle, back_emf_v_s_per_rad (scalars)
+                                     period_s, until_cycle, back_emf_v_s_per_rad,
+                                     pace_step_per_cycle (scalars)
 soft_*                               present with the soft cap: theta_limit_rad,
                                      zone_gain_per_s, rate_gain_per_s, alpha,
                                      alpha_beta, gap_step_rad (scalars),
@@ -71,7 +72,7 @@ _REST_SCALARS = ("theta_near_rad", "theta_far_rad", "position_near_m", "position
 _SOFT_SCALARS = ("theta_limit_rad", "zone_gain_per_s", "rate_gain_per_s", "alpha",
                  "alpha_beta", "gap_step_rad")
 _ADAPT_SCALARS = ("design_gamma", "position_noise_m", "confidence", "min_ratio", "max_ratio",
-                  "period_s", "back_emf_v_s_per_rad")
+                  "period_s", "back_emf_v_s_per_rad", "pace_step_per_cycle")
 _GUARD_SCALARS = ("theta_limit_rad", "voltage_limit_v", "theta_per_v", "rate_per_v",
                   "rate_step_rad_s", "beyond_slope_s")
 
