@@ -52,6 +52,10 @@ def test_the_recorded_design_round_trips_bit_for_bit(design: ControllerDesign) -
         assert same_bits(getattr(decoded, name), getattr(design, name)), name
     assert decoded.observer == design.observer
     assert decoded.guard == design.guard
+    # Every learning and blending part of the law, present in the default design, comes back.
+    for part in ("rest_observer", "rest_gains", "adaptation", "deadzone_learning"):
+        assert getattr(design, part) is not None, part
+        assert getattr(decoded, part) == getattr(design, part), part
     assert decoded.initial_state == design.initial_state
     assert (decoded.period_s, decoded.angle_per_count, decoded.position_per_count) == (
         design.period_s, design.angle_per_count, design.position_per_count

@@ -11,8 +11,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ballbeam.config import Config
+from ballbeam.core.adaptation import BallGainAdaptation, DeadZoneLearning
 from ballbeam.core.control import (
-    BallGainAdaptation,
     ControllerDesign,
     ObserverLaw,
     RestGains,
@@ -166,6 +166,7 @@ def controller_design(config: Config, plan: Plan | None = None) -> ControllerDes
         rest_observer=rest_observer,
         rest_gains=rest_gains,
         adaptation=_ball_gain_adaptation(config, model, rest_from_cycle, position_noise_m),
+        deadzone_learning=_deadzone_learning(config),
         initial_state=as_row4(initial),
         angle_per_count=constants.angle_sensor_gain * encoder_step_rad,
         position_per_count=constants.position_sensor_gain * adc_step_m,
@@ -188,6 +189,19 @@ def _ball_gain_adaptation(
         until_cycle=until_cycle,
         back_emf_v_s_per_rad=float(-model.A[1, 1] / model.B[1, 0]),
         pace_step_per_cycle=tracker_cfg.pace_slew_per_s * config.controller.period_s,
+    )
+
+
+def _deadzone_learning(config: Config) -> DeadZoneLearning | None:
+    controller = config.controller
+    if not controller.learn_deadzone:
+        return None
+    return DeadZoneLearning(
+        min_motion_rad=controller.deadzone_learning_counts * config.sensors.encoder_step_rad,
+        judge_motion_rad=4 * controller.deadzone_learning_counts * config.sensors.encoder_step_rad,
+        rate=controller.deadzone_learning_rate,
+        below_v=controller.deadzone_learning_below_v,
+        max_v=controller.deadzone_max_v,
     )
 
 

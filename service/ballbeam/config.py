@@ -132,7 +132,7 @@ class TrackerSection(_Section):
     rest_position_far_m: float = Field(0.0008, gt=0, description="tracking gains beyond |x| >")
 
     adapt_ball_gain: bool = Field(
-        False, description="estimate the ball's gain while the plan runs; follow the path at "
+        True, description="estimate the ball's gain while the plan runs; follow the path at "
         "the pace it allows and predict with it"
     )
     ball_gain_confidence: float = Field(
@@ -254,6 +254,24 @@ class ControllerSection(_Section):
         ge=0,
         le=5,
         description="the motor dead zone the controller adds back (beyond the band) and models",
+    )
+    learn_deadzone: bool = Field(
+        True, description="learn the motor's dead zone from the servo's response to small "
+        "commands (starting from deadzone_compensation_v)"
+    )
+    deadzone_learning_rate: float = Field(
+        0.3, gt=0, le=1, description="dead-zone learning: fraction of the way to each window's "
+        "estimate"
+    )
+    deadzone_learning_counts: float = Field(
+        4.0, ge=1, le=1000, description="dead-zone learning: encoder counts the model must move "
+        "the servo in a window for it to count"
+    )
+    deadzone_learning_below_v: float = Field(
+        1.5, gt=0, le=50, description="dead-zone learning: only commands below this teach it"
+    )
+    deadzone_max_v: float = Field(
+        1.0, gt=0, le=50, description="dead-zone learning: the largest dead zone believed"
     )
     bound_tolerance_deg: float = Field(
         0.5,

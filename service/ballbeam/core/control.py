@@ -9,11 +9,17 @@ the bit on every machine, so a recorded design replays identically wherever it i
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from ballbeam.core.adaptation import (
+    EMPTY_FIT,
+    BallGainAdaptation,
+    DeadZoneLearning,
+    DeadZoneWindow,
+    FitSums,
+)
 from ballbeam.core.guard import AngleGuard, guarded_voltage
 from ballbeam.core.model import Row4, as_row4
 from ballbeam.core.plant import SensorReading
@@ -79,86 +85,6 @@ class RestGains:
         return min(max(max(ramp, theta, position), 0.0), 1.0)
 
 
-FitSums = tuple[float, ...]  # see BallGainAdaptation.add_sample, .advance
-EMPTY_FIT: FitSums = (0.0,) * 12
-
-
-@dataclass(frozen=True)
-class BallGainAdaptation:
-    """The ball's gain γ (ẍ = γ·θ) estimated while the plan runs, and the path followed at the
-    pace that gain allows.
-
-    A minimum-time path asks for the full angle on its arcs; a ball that rolls slower or faster
-    than the model (a ball-gain error, the sine of a large angle) cannot follow it in time, and
-    a tracker that insists rides the limit past the plan's switch and overshoots. A path's
-    accelerations scale with the square of the pace at which it is played, so played at pace
-    √(γ̂/γ) it asks of the true ball exactly the angles it asked of the model: the path stays
-    the plan's, only its clock (τ, in cycles) runs at that pace. The observer predicts with γ̂.
-
-    The ball's position is x(t) = x0 + v0·t + γ·G(t), G the double integral of the measured
-    angle, so regressing the measured position on (1, t, G) gives γ with x0 and v0 (no
-    differentiation of a noisy signal). The sums of the normal equations are the state; the
-    3 × 3 solve is Cramer's rule, plain floats. The estimate counts once its standard error
-    (from the design's position noise) is below ``confidence`` of |γ_design|; it is used only
-    while the plan runs (afterwards the angle stays small and says little about γ).
-    """
-
-    design_gamma: float  # γ of the design model [m/s² per rad]
-    position_noise_m: float
-    confidence: float  # relative standard error below which the estimate is used
-    min_ratio: float
-    max_ratio: float
-    period_s: float
-    until_cycle: int  # the plan's end (path cycles)
-    back_emf_v_s_per_rad: float  # β of the servo model (θ̈ = α·u − αβ·θ̇): the pace's feedforward
-
-    pace_step_per_cycle: float  # how fast the pace may change (a jump of pace is a step of u)
-
-    def pace(self, ratio: float, previous_pace: float) -> float:
-        """√ratio, approached from the previous cycle's pace by at most one pace step."""
-        target = math.sqrt(ratio) if ratio != 1.0 else 1.0
-        step = self.pace_step_per_cycle
-        return min(max(target, previous_pace - step), previous_pace + step)
-
-    def add_sample(self, sums: FitSums, position_m: float) -> FitSums:
-        """Accumulate the normal equations with a measured position at the current instant."""
-        (n, s_t, s_tt, s_g, s_tg, s_gg, s_x, s_tx, s_gx, t, g1, g) = sums
-        return (
-            n + 1.0, s_t + t, s_tt + t * t, s_g + g, s_tg + t * g, s_gg + g * g,
-            s_x + position_m, s_tx + t * position_m, s_gx + g * position_m, t, g1, g,
-        )
-
-    def advance(self, sums: FitSums, theta_rad: float) -> FitSums:
-        """One period on: t, and the angle held over it integrated twice (exactly, as the
-        zero-order hold the plant sees). Every cycle advances, measured or not, so that t and G
-        are the plant's whatever frames were lost or periods skipped."""
-        dt = self.period_s
-        t, g1, g2 = sums[9:]
-        return (
-            *sums[:9], t + dt, g1 + theta_rad * dt, g2 + g1 * dt + 0.5 * theta_rad * dt * dt
-        )
-
-    def ratio(self, sums: FitSums) -> float:
-        """γ̂ / γ_design once the fit is confident, else 1."""
-        (n, s_t, s_tt, s_g, s_tg, s_gg, s_x, s_tx, s_gx) = sums[:9]
-        # Cofactors of the symmetric normal matrix [[n, s_t, s_g], [s_t, s_tt, s_tg],
-        # [s_g, s_tg, s_gg]].
-        c00 = s_tt * s_gg - s_tg * s_tg
-        c01 = s_tg * s_g - s_t * s_gg
-        c02 = s_t * s_tg - s_tt * s_g
-        det = n * c00 + s_t * c01 + s_g * c02
-        if det <= 0.0:
-            return 1.0
-        c22 = n * s_tt - s_t * s_t
-        c12 = s_t * s_g - n * s_tg
-        gamma = (c02 * s_x + c12 * s_tx + c22 * s_gx) / det
-        variance = self.position_noise_m * self.position_noise_m * c22 / det
-        design = self.design_gamma
-        if variance < 0.0 or variance > (self.confidence * design) ** 2:
-            return 1.0
-        return min(max(gamma / design, self.min_ratio), self.max_ratio)
-
-
 @dataclass(frozen=True)
 class ControllerDesign:
     """Everything a cycle needs, computed once before the run (and recorded with it).
@@ -191,6 +117,7 @@ class ControllerDesign:
     rest_observer: ObserverLaw | None
     rest_gains: RestGains | None
     adaptation: BallGainAdaptation | None  # None: the design's ball gain, the plan's pace
+    deadzone_learning: DeadZoneLearning | None  # None: the design's dead zone throughout
     initial_state: Row4  # the planned start: supplies the rates no sensor measures
     angle_per_count: float  # measurement units (57·θ) per encoder count
     position_per_count: float  # measurement units (100·x) per ADC count
@@ -297,18 +224,27 @@ class ControllerDesign:
             return self.rest_observer
         return self.observer
 
-    def compensated(self, voltage_v: float) -> float:
+    @property
+    def servo_rows(self) -> tuple[float, float, float, float, float, float]:
+        """The servo's own model over one period: (a00, a01, a10, a11, b0, b1)."""
+        (a00, a01, _, _), (a10, a11, _, _) = self.observer.Ad[0], self.observer.Ad[1]
+        return a00, a01, a10, a11, self.observer.Bd[0], self.observer.Bd[1]
+
+    def deadzone_at(self, state: ControllerState) -> float:
+        """The dead zone the cycle compensates: the learnt one, else the design's."""
+        return self.deadzone_v if state.deadzone_v is None else state.deadzone_v
+
+    def compensated(self, voltage_v: float, deadzone: float) -> float:
         """The command sent for a demand (dead-zone compensation with a band)."""
-        band, deadzone, limit = self.deadband_v, self.deadzone_v, self.voltage_limit_v
+        band, limit = self.deadband_v, self.voltage_limit_v
         if voltage_v > band:
             return min(voltage_v + (deadzone - band), limit)
         if voltage_v < -band:
             return max(voltage_v - (deadzone - band), -limit)
         return 0.0
 
-    def modelled_drive_v(self, sent_v: float) -> float:
-        """The drive a motor with the modelled dead zone receives for a sent voltage."""
-        deadzone = self.deadzone_v
+    def modelled_drive_v(self, sent_v: float, deadzone: float) -> float:
+        """The drive a motor with dead zone ``deadzone`` receives for a sent voltage."""
         if sent_v > deadzone:
             return sent_v - deadzone
         if sent_v < -deadzone:
@@ -324,6 +260,8 @@ class ControllerState:
     fit: FitSums = EMPTY_FIT  # the ball-gain fit's sums
     ball_gain_ratio: float = 1.0  # γ̂ / γ_design: scales the observer's ball rows
     pace: float = 1.0  # the path's clock rate: τ advances by this each cycle
+    deadzone_v: float | None = None  # the learnt dead zone (None: the design's)
+    deadzone_window: DeadZoneWindow | None = None  # the dead-zone learning's open window
 
 
 @dataclass(frozen=True)
@@ -387,6 +325,7 @@ def control_cycle(
     design: ControllerDesign, state: ControllerState, reading: SensorReading | None
 ) -> tuple[ControllerState, CycleOutput]:
     """One control period. ``reading`` is None when no valid sensor frame arrived in time."""
+    deadzone_v = design.deadzone_at(state)
     if state.prediction is None:
         if reading is None:
             raise ValueError("the first control cycle needs a sensor reading")
@@ -419,13 +358,27 @@ def control_cycle(
     else:
         limit = design.voltage_limit_v
         capped_v = min(max(requested_v, -limit), limit)
-    voltage_v = design.compensated(capped_v)
+    voltage_v = design.compensated(capped_v, deadzone_v)
+    drive_v = design.modelled_drive_v(voltage_v, deadzone_v)
+    window = state.deadzone_window
+    learning = design.deadzone_learning
+    if learning is not None:
+        if reading is None:
+            window = None  # a window needs the angle measured at both ends
+        else:
+            deadzone_v, window = learning.step(
+                deadzone_v, window, voltage_v, drive_v,
+                design.measurement(reading)[0] / design.observer.C[0][0], estimate[1],
+                design.servo_rows,
+            )
+            drive_v = design.modelled_drive_v(voltage_v, deadzone_v)
     # Rest and tracking observers share Ad, Bd: predicting with either is the same.
-    prediction = predict(design.observer, estimate, design.modelled_drive_v(voltage_v), ratio)
+    prediction = predict(design.observer, estimate, drive_v, ratio)
     return (
         ControllerState(
             cycle=state.cycle + 1, prediction=prediction, path_position=position + pace,
-            fit=fit, ball_gain_ratio=ratio, pace=pace,
+            fit=fit, ball_gain_ratio=ratio, pace=pace, deadzone_v=deadzone_v,
+            deadzone_window=window,
         ),
         CycleOutput(
             voltage_v, requested_v, estimate, reading is not None, reference, reference_input_v
@@ -442,7 +395,7 @@ def coast_cycles(
     prediction = state.prediction
     fit = state.fit
     if prediction is not None:
-        drive_v = design.modelled_drive_v(held_voltage_v)
+        drive_v = design.modelled_drive_v(held_voltage_v, design.deadzone_at(state))
         for _ in range(count):
             if design.adaptation is not None:
                 fit = design.adaptation.advance(fit, prediction[0])
@@ -450,7 +403,7 @@ def coast_cycles(
     return ControllerState(
         cycle=state.cycle + count, prediction=prediction,
         path_position=state.path_position + count * state.pace, fit=fit,
-        ball_gain_ratio=state.ball_gain_ratio, pace=state.pace,
+        ball_gain_ratio=state.ball_gain_ratio, pace=state.pace, deadzone_v=state.deadzone_v,
     )
 
 

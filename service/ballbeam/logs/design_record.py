@@ -39,6 +39,8 @@ adapt_*                              present with the ball-gain adaptation: desi
                                      position_noise_m, confidence, min_ratio, max_ratio,
                                      period_s, until_cycle, back_emf_v_s_per_rad,
                                      pace_step_per_cycle (scalars)
+learn_*                              present with dead-zone learning: min_motion_rad,
+                                     judge_motion_rad, rate, below_v, max_v (scalars)
 soft_*                               present with the soft cap: theta_limit_rad,
                                      zone_gain_per_s, rate_gain_per_s, alpha,
                                      alpha_beta, gap_step_rad (scalars),
@@ -56,7 +58,8 @@ from typing import Any
 
 import numpy as np
 
-from ballbeam.core.control import BallGainAdaptation, ControllerDesign, ObserverLaw, RestGains
+from ballbeam.core.adaptation import BallGainAdaptation, DeadZoneLearning
+from ballbeam.core.control import ControllerDesign, ObserverLaw, RestGains
 from ballbeam.core.guard import AngleGuard, SoftCap
 from ballbeam.core.model import Row4, as_row4
 from ballbeam.errors import LogFormatError
@@ -73,6 +76,7 @@ _SOFT_SCALARS = ("theta_limit_rad", "zone_gain_per_s", "rate_gain_per_s", "alpha
                  "alpha_beta", "gap_step_rad")
 _ADAPT_SCALARS = ("design_gamma", "position_noise_m", "confidence", "min_ratio", "max_ratio",
                   "period_s", "back_emf_v_s_per_rad", "pace_step_per_cycle")
+_LEARN_SCALARS = ("min_motion_rad", "judge_motion_rad", "rate", "below_v", "max_v")
 _GUARD_SCALARS = ("theta_limit_rad", "voltage_limit_v", "theta_per_v", "rate_per_v",
                   "rate_step_rad_s", "beyond_slope_s")
 
@@ -107,6 +111,9 @@ def encode_design(design: ControllerDesign) -> bytes:
     if adaptation is not None:
         arrays.update({f"adapt_{name}": _f8(getattr(adaptation, name)) for name in _ADAPT_SCALARS})
         arrays["adapt_until_cycle"] = _f8(adaptation.until_cycle)
+    learning = design.deadzone_learning
+    if learning is not None:
+        arrays.update({f"learn_{name}": _f8(getattr(learning, name)) for name in _LEARN_SCALARS})
     guard = design.guard
     if guard is not None:
         arrays.update({f"guard_{name}": _f8(getattr(guard, name)) for name in _GUARD_SCALARS})
@@ -172,6 +179,11 @@ def decode_design(data: bytes, where: str) -> ControllerDesign:
                 **{name: _scalar(arrays[f"adapt_{name}"]) for name in _ADAPT_SCALARS},
                 until_cycle=_count(arrays["adapt_until_cycle"]),
             )
+        learning = None
+        if "learn_rate" in arrays:
+            learning = DeadZoneLearning(
+                **{name: _scalar(arrays[f"learn_{name}"]) for name in _LEARN_SCALARS}
+            )
         return ControllerDesign(
             **{name: _scalar(arrays[name]) for name in _SCALARS},
             gains=arrays["gains"],
@@ -186,6 +198,7 @@ def decode_design(data: bytes, where: str) -> ControllerDesign:
             rest_observer=rest_observer,
             rest_gains=rest_gains,
             adaptation=adaptation,
+            deadzone_learning=learning,
         )
     except LogFormatError:
         raise

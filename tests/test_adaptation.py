@@ -1,9 +1,10 @@
-"""The ball-gain estimate and the paced path (core/control.py, BallGainAdaptation).
+"""What the loop learns (core/adaptation.py): the ball's gain and the paced path; the dead zone.
 
-The estimate is checked against the true gain of synthetic data and against NumPy's least
-squares on the same regression; the paced path against what time scaling promises: a ball 20 %
-slower than the model follows the plan's path at pace √0.8 without the overshoot a tracker on
-the plan's clock produces.
+The ball-gain estimate is checked against the true gain of synthetic data and against NumPy's
+least squares on the same regression; the paced path against what time scaling promises: a
+ball 20 % slower than the model follows the plan's path at pace √0.8 without the overshoot a
+tracker on the plan's clock produces. The learnt dead zone is checked against the emulated
+motor's true one.
 """
 
 from __future__ import annotations
@@ -15,12 +16,8 @@ import pytest
 
 from ballbeam.assembly import run_offline
 from ballbeam.config import load_config
-from ballbeam.core.control import (
-    EMPTY_FIT,
-    BallGainAdaptation,
-    ControllerState,
-    control_cycle,
-)
+from ballbeam.core.adaptation import EMPTY_FIT, BallGainAdaptation, DeadZoneLearning
+from ballbeam.core.control import ControllerState, control_cycle
 from ballbeam.core.plant import SensorReading
 
 from .conftest import PAPER
@@ -151,3 +148,89 @@ def test_the_pace_changes_by_bounded_steps() -> None:
     assert law.pace(0.64, 1.0) == pytest.approx(0.999)
     assert law.pace(0.64, 0.8005) == pytest.approx(0.8)
     assert law.pace(1.0, 1.0) == 1.0
+
+
+def final_state(overrides: list[str]) -> tuple[ControllerState, float | None]:
+    """The controller's state at the end of an offline run (replaying its sensor readings
+    through the control law) and the run's rest time."""
+    config = load_config(PAPER, overrides)
+    run = run_offline(config)
+    state = ControllerState()
+    for angle, position in zip(run.trace.angle_counts, run.trace.position_counts, strict=True):
+        state, _ = control_cycle(run.design, state, SensorReading(int(angle), int(position)))
+    return state, run.metrics.rest_time_s
+
+
+def test_a_wide_dead_zone_is_learnt_and_the_ball_rests() -> None:
+    state, rest_time_s = final_state(["plant.deadzone_v=0.4"])
+    assert state.deadzone_v == pytest.approx(0.4, abs=0.08)
+    assert rest_time_s is not None and rest_time_s < 1.6 * 1.746
+
+
+def test_without_learning_a_wide_dead_zone_never_rests() -> None:
+    """The limit cycle the learning removes (so the test above is not vacuous)."""
+    _, rest_time_s = final_state(["plant.deadzone_v=0.4", "controller.learn_deadzone=false"])
+    assert rest_time_s is None
+
+
+@pytest.mark.parametrize("overrides", [[], ["plant.motor_gain_scale=0.9"]])
+def test_the_modelled_dead_zone_stays_put(overrides: list[str]) -> None:
+    """The emulated motor's 0.1 V is what the design models: the estimate stays near it, also
+    with a motor 10 % weaker (full-scale moves do not teach the dead zone)."""
+    state, _ = final_state(overrides)
+    assert state.deadzone_v == pytest.approx(0.1, abs=0.05)
+
+
+SERVO_ROWS = (1.0, 1e-3, 0.0, 0.94, 5e-5, 0.1)  # a servo over 1 ms: θ̇ += 0.1·drive, decay 0.94
+
+
+def run_window(learning: DeadZoneLearning, sent_v: float, true_deadzone_v: float) -> float:
+    """Hold ``sent_v`` for 300 cycles on a servo with the given dead zone (the same model as
+    the learning's, so only the dead zone differs), then reverse it: the learnt dead zone."""
+    believed_v = 0.1
+    window = None
+    theta, rate = 0.0, 0.0
+    a00, a01, a10, a11, b0, b1 = SERVO_ROWS
+    for command_v in [sent_v] * 300 + [-sent_v]:
+        drive_true = max(abs(command_v) - true_deadzone_v, 0.0) * (1 if command_v > 0 else -1)
+        drive_model = max(abs(command_v) - believed_v, 0.0) * (1 if command_v > 0 else -1)
+        believed_v, window = learning.step(
+            believed_v, window, command_v, drive_model, theta, rate, SERVO_ROWS
+        )
+        theta, rate = a00 * theta + a01 * rate + b0 * drive_true, (
+            a10 * theta + a11 * rate + b1 * drive_true
+        )
+    return believed_v
+
+
+def test_one_window_moves_the_estimate_towards_the_true_dead_zone() -> None:
+    learning = DeadZoneLearning(
+        min_motion_rad=0.006, judge_motion_rad=1e9, rate=1.0, below_v=1.5, max_v=1.0
+    )
+    # rate 1: one judged window gives the dead zone that explains the motion, exactly for a
+    # servo that matches the model.
+    assert run_window(learning, 0.8, 0.4) == pytest.approx(0.4, abs=1e-9)
+    assert run_window(learning, 0.8, 0.1) == pytest.approx(0.1, abs=1e-9)
+
+
+def test_dead_zone_windows_that_cannot_teach_are_ignored() -> None:
+    learning = DeadZoneLearning(
+        min_motion_rad=0.006, judge_motion_rad=1e9, rate=1.0, below_v=1.5, max_v=1.0
+    )
+    assert run_window(learning, 2.0, 0.4) == 0.1  # a large command: a gain error would mislead
+    strict = DeadZoneLearning(
+        min_motion_rad=10.0, judge_motion_rad=1e9, rate=1.0, below_v=1.5, max_v=1.0
+    )
+    assert run_window(strict, 0.8, 0.4) == 0.1  # the model moved less than the minimum
+    capped = DeadZoneLearning(
+        min_motion_rad=0.006, judge_motion_rad=1e9, rate=1.0, below_v=1.5, max_v=0.3
+    )
+    assert run_window(capped, 0.8, 0.4) == 0.3  # never above the largest believed
+
+
+def test_coarse_counts_are_not_taken_for_a_dead_zone() -> None:
+    """A 1024-count encoder hides sub-count motion; the learning must not read it as a dead
+    zone (an innovation-correlation rule did: 0.1 → 0.79 V, and the ball never rested)."""
+    state, rest_time_s = final_state(["sensors.encoder_counts_per_rev=1024", "sensors.adc_bits=12"])
+    assert state.deadzone_v == pytest.approx(0.1, abs=0.05)
+    assert rest_time_s is not None
