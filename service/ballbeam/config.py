@@ -24,6 +24,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from ballbeam.core.metrics import EXPECTABLE_METRICS
 from ballbeam.core.model import PhysicalConstants
 from ballbeam.errors import ConfigError
+from ballbeam.files import not_a_regular_file
 
 MAX_EXTENDS_DEPTH = 16
 # Interface-local IPv6 multicast (scope 1): the kernel loops it back and never transmits it.
@@ -33,7 +34,9 @@ _PAPER = PhysicalConstants()
 
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True)
+    model_config = ConfigDict(
+        extra="forbid", frozen=True, validate_default=True, allow_inf_nan=False
+    )
 
 
 class ModelSection(_Section):
@@ -47,9 +50,11 @@ class ModelSection(_Section):
     gear_ratio: float = Field(_PAPER.gear_ratio, gt=0)
     armature_resistance_ohm: float = Field(_PAPER.armature_resistance_ohm, gt=0)
     armature_inertia_kg_m2: float = Field(_PAPER.armature_inertia_kg_m2, gt=0)
-    gravity_m_per_s2: float = Field(_PAPER.gravity_m_per_s2, gt=0)
-    arm_radius_m: float = Field(_PAPER.arm_radius_m, gt=0)
-    beam_length_m: float = Field(_PAPER.beam_length_m, gt=0)
+    # Physically meaningful ranges: a bench on a planet, a beam of a few centimetres to metres
+    # (a 1e-300 m beam planned a 108 s path and overflowed the planner).
+    gravity_m_per_s2: float = Field(_PAPER.gravity_m_per_s2, gt=0, le=30)
+    arm_radius_m: float = Field(_PAPER.arm_radius_m, gt=0, le=1)
+    beam_length_m: float = Field(_PAPER.beam_length_m, ge=0.05, le=10)
     angle_sensor_gain: float = Field(_PAPER.angle_sensor_gain, gt=0)
     position_sensor_gain: float = Field(_PAPER.position_sensor_gain, gt=0)
 
@@ -67,7 +72,7 @@ class InitialSection(_Section):
     theta_deg: float = Field(-52.0, ge=-90, le=90)
     theta_rate_deg_s: float = Field(0.0, ge=-5000, le=5000)
     ball_velocity_m_s: float = Field(0.0, ge=-5, le=5)
-    ball_position_m: float = Field(0.195, ge=-1, le=1)
+    ball_position_m: float = Field(0.195, ge=-5, le=5)  # on the beam: checked with the model
 
     def state(self) -> np.ndarray:
         """Initial state vector (θ, θ̇, ẋ, x) in SI units."""
@@ -378,6 +383,38 @@ class BusSection(_Section):
     )
     options: dict[str, str | int | float | bool] = Field(default_factory=dict)
 
+    @model_validator(mode="after")
+    def _known_options(self) -> BusSection:
+        if self.options:
+            unknown = sorted(set(self.options) - _bus_option_names(self.interface))
+            if unknown:
+                raise ValueError(
+                    f"bus.options: {', '.join(unknown)} not an option of python-can's "
+                    f"{self.interface!r} interface"
+                )
+        return self
+
+
+def _bus_option_names(interface: str) -> set[str]:
+    """The keyword arguments python-can's bus class for ``interface`` names (its own and
+    BusABC's), less those the bench sets itself. Unknown interfaces: ValueError."""
+    import importlib
+    import inspect
+
+    import can
+    from can.interfaces import BACKENDS
+
+    if interface not in BACKENDS:
+        raise ValueError(f"bus.interface {interface!r} is not one of python-can's interfaces")
+    module, class_name = BACKENDS[interface]
+    try:
+        bus_class = getattr(importlib.import_module(module), class_name)
+    except ImportError as error:
+        raise ValueError(f"bus.interface {interface!r} cannot be loaded: {error}") from error
+    names = set(inspect.signature(bus_class.__init__).parameters)
+    names |= set(inspect.signature(can.BusABC.__init__).parameters)
+    return names - {"self", "channel", "args", "kwargs"}
+
 
 class Config(_Section):
     model: ModelSection = ModelSection()
@@ -406,6 +443,12 @@ class Config(_Section):
             raise ValueError(
                 f"controller.rate_hz = {self.controller.rate_hz} must divide "
                 f"plant.sensor_rate_hz = {self.plant.sensor_rate_hz}"
+            )
+        half_beam_m = self.model.beam_length_m / 2
+        if abs(self.initial.ball_position_m) > half_beam_m:
+            raise ValueError(
+                f"initial.ball_position_m = {self.initial.ball_position_m} is off the beam "
+                f"(|x| <= model.beam_length_m / 2 = {half_beam_m:g} m)"
             )
         if abs(self.initial.theta_deg) > self.plant.hard_stop_deg:
             raise ValueError(
@@ -440,12 +483,23 @@ def _deep_merge(base: dict[str, Any], override: Mapping[str, Any]) -> dict[str, 
     return merged
 
 
+MAX_CONFIG_BYTES = 1 << 20  # far above any real config (the paper's is 4 KiB)
+
+
 def _read_toml(path: Path, depth: int = 0) -> dict[str, Any]:
     if depth > MAX_EXTENDS_DEPTH:
         raise ConfigError(f"{path}: 'extends' chain is deeper than {MAX_EXTENDS_DEPTH} files")
+    problem = not_a_regular_file(path)
+    if problem is not None:
+        raise ConfigError(f"cannot read config {path}: {problem}")
     try:
         with path.open("rb") as stream:
-            data = tomllib.load(stream)
+            text = stream.read(MAX_CONFIG_BYTES + 1)
+        if len(text) > MAX_CONFIG_BYTES:
+            raise ConfigError(
+                f"{path}: larger than {MAX_CONFIG_BYTES // 1024} KiB; not a config file"
+            )
+        data = tomllib.loads(text.decode("utf-8"))
     except FileNotFoundError as error:
         raise ConfigError(f"config file not found: {path}") from error
     except IsADirectoryError as error:

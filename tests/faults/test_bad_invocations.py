@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import os
 import random
 import re
 from concurrent.futures import ThreadPoolExecutor
@@ -38,6 +39,8 @@ def _bad_invocations(tmp: Path) -> list[tuple[list[str], str, bool]]:
     loop = tmp / "loop.toml"
     loop.write_text('extends = "loop.toml"\n')
     missing = str(tmp / "missing.toml")
+    fifo = tmp / "pipe"
+    os.mkfifo(fifo)  # opening it would wait for a writer forever
     plan = ["plan", "--set", PLAN]
     return [
         ([*plan, "--set", "nosuch.key=1"], "unknown key", False),
@@ -73,6 +76,23 @@ def _bad_invocations(tmp: Path) -> list[tuple[list[str], str, bool]]:
         (["replay", str(random_bytes)], "not an MCAP file", False),
         (["replay", str(foreign)], "not a ballbeam log", False),
         (["replay", str(tmp)], "directory", False),
+        # Found in the load campaign (issue 13): hangs, tracebacks and silent acceptance.
+        (["plan", "/dev/zero"], "device, not a file", False),
+        (["plan", str(fifo)], "pipe (FIFO), not a file", False),
+        (["replay", "/dev/zero"], "device, not a file", False),
+        (["replay", str(fifo)], "pipe (FIFO), not a file", False),
+        ([*plan, "--set", "model.gravity_m_per_s2=inf"], "model.gravity_m_per_s2", False),
+        ([*plan, "--set", "model.beam_length_m=1e-300"], "model.beam_length_m", False),
+        ([*plan, "--set", "initial.ball_position_m=0.9"], "off the beam", False),
+        ([*plan, "--set", "bus.options={bogus=1}"], "bogus not an option", False),
+        (
+            [
+                "run", "--set", PLAN, "--set", "bus.channel='239.1.2.3'",
+                "--set", "bus.allow_off_host=true", "--set", f"run.log_dir='{tmp}'",
+            ],
+            "bus.isolate_runs",  # refused before any socket is opened: nothing is sent
+            False,
+        ),
         # argparse: usage, then one "ballbeam ...: error:" line
         (["frobnicate"], "invalid choice", True),
         (["daemon", "--log"], "expected one argument", True),

@@ -25,6 +25,8 @@ import os
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
+from ballbeam.errors import LogFormatError
+from ballbeam.files import not_a_regular_file
 from ballbeam.logs.gather import JsonTopic, StructTopic, _Gather
 from ballbeam.logs.mcap_records import _RECORD_HEAD, MAGIC, PROFILE
 
@@ -68,6 +70,9 @@ def read_log(
     if isinstance(source, (bytes, bytearray, memoryview)):
         return _Reader(memoryview(source).cast("B"), "<memory>", selected).read()
     path = os.fspath(source)
+    problem = not_a_regular_file(path)
+    if problem is not None:
+        raise LogFormatError(f"{path}: not a log: {problem}")
     with open(path, "rb") as file:
         size = os.fstat(file.fileno()).st_size
         if size < len(MAGIC) + _RECORD_HEAD:

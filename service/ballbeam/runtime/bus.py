@@ -59,7 +59,13 @@ def isolated_group(group: str) -> str:
     its sockets hear only their own group (open_bus sees to that; python-can alone binds the
     wildcard address and, on Linux, hears every group joined on its port). The launcher also
     gives each run its own port (free_udp_port), for listeners that do not opt out."""
-    address = ipaddress.IPv6Address(group)
+    try:
+        address = ipaddress.IPv6Address(group)
+    except ipaddress.AddressValueError as error:
+        raise BusError(
+            f"bus.channel {group}: a private group per run (bus.isolate_runs) is drawn from an "
+            "IPv6 group's low 64 bits; use an ff11:: group, or set bus.isolate_runs = false"
+        ) from error
     prefix = int(address) >> 64 << 64
     return str(ipaddress.IPv6Address(prefix | secrets.randbits(64)))
 
