@@ -101,6 +101,10 @@ class McapFile:
     ) -> None:
         self._stream = stream
         self._position = 0
+        # CRC-32 of everything before the Data End record (the spec's data-section CRC): a
+        # duplicated, removed or altered chunk is then detected by a reader that checks it.
+        self._data_crc = 0
+        self._in_data_section = True
         self._compressor = zstandard.ZstdCompressor()
         self._schemas: list[Schema] = []
         self._channels: list[Channel] = []
@@ -122,6 +126,8 @@ class McapFile:
     def _write(self, data: bytes | bytearray | memoryview) -> None:
         self._stream.write(data)
         self._position += len(data)
+        if self._in_data_section:
+            self._data_crc = zlib.crc32(data, self._data_crc)
 
     # -- definitions and out-of-chunk records (rare; each written at once) --------------------
     def add_schema(self, name: str, encoding: str, data: bytes) -> int:
@@ -273,7 +279,8 @@ class McapFile:
         chunk = self.take_chunk()
         if chunk is not None:
             self.write_chunk(chunk)
-        self._write(_record_bytes(DataEnd(data_section_crc=0)))  # 0: not computed
+        self._in_data_section = False
+        self._write(_record_bytes(DataEnd(data_section_crc=self._data_crc)))
         summary_start = self._position
         summary_crc = 0
         offsets: list[SummaryOffset] = []

@@ -71,7 +71,9 @@ _MSG_FIXED = struct.Struct("<HIQQ")
 
 _RECORD_HEAD = 9  # opcode (1) + content length (8)
 _MESSAGE_HEAD = 31  # record head + channel id (2) + sequence (4) + log time (8) + publish time (8)
-_MAX_CHUNK_BYTES = 1 << 30  # a chunk that decompresses past this is not one of ours
+# A chunk that decompresses past this is not one of ours (they are about 1 MiB; other writers'
+# defaults are a few MiB): a hostile chunk cannot make a reader allocate more.
+_MAX_CHUNK_BYTES = 64 << 20
 
 
 class _Cursor:
@@ -393,7 +395,10 @@ class _RecordWalk:
                 declared = _lz4.get_frame_info(data).get("content_size", 0)
                 if declared not in (0, uncompressed_size):
                     raise ValueError(f"frame says {declared} bytes")
-                out = _lz4.decompress(data)
+                # Bounded like zstd: never more than the chunk's declared size (+1 to see excess).
+                out = _lz4.LZ4FrameDecompressor().decompress(
+                    data, max_length=uncompressed_size + 1
+                )
             elif compression == "":
                 out = bytes(data)
             else:
