@@ -10,6 +10,7 @@ import json
 import math
 import sys
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -177,6 +178,37 @@ def _read_log_or_fail(path: str) -> Any:
         raise LogFormatError(f"cannot open log {path}: {error.strerror or error}") from error
 
 
+def command_recover(args: argparse.Namespace) -> int:
+    from ballbeam.errors import LogFormatError
+    from ballbeam.logs.recover import recover_log, recovered_path
+
+    source = Path(args.log)
+    destination = Path(args.output) if args.output else recovered_path(source)
+    if destination.exists():
+        raise LogFormatError(f"{destination} exists; name another with --output")
+    try:
+        recovery = recover_log(source, destination)
+    except FileNotFoundError as error:
+        raise LogFormatError(f"cannot open log {source}: not found") from error
+    except OSError as error:
+        raise LogFormatError(f"cannot recover {source}: {error.strerror or error}") from error
+    report = {
+        "source": str(recovery.source),
+        "recovered": str(recovery.destination),
+        "was_complete": recovery.was_complete,
+        "stopped_because": recovery.stopped_because or "-",
+        "messages": recovery.messages,
+        "attachments": recovery.attachments,
+        "metadata": recovery.metadata,
+        "last_log_time_ns": recovery.last_log_time_ns,
+    }
+    if args.json:
+        print_json(report)
+    else:
+        print_table("recovered log", report)
+    return 0
+
+
 def command_replay(args: argparse.Namespace) -> int:
     from ballbeam.evaluation.summary import limit_from_log, run_series, summarise
 
@@ -323,6 +355,18 @@ def build_parser() -> argparse.ArgumentParser:
         help="re-run the controller on the recorded sensor frames; exit 1 on any difference",
     )
     replay.set_defaults(handler=command_replay)
+
+    recover = commands.add_parser(
+        "recover", help="make a log cut short whole again (complete, indexed MCAP)"
+    )
+    recover.add_argument("log", metavar="LOG.mcap")
+    recover.add_argument(
+        "-o", "--output", metavar="OUT.mcap",
+        help="where to write it (default: LOG.recovered.mcap beside it; never over an existing "
+        "file)",
+    )
+    recover.add_argument("--json", action="store_true", help="print one JSON object")
+    recover.set_defaults(handler=command_recover)
 
     regress_parser = commands.add_parser(
         "regress", help="run every scenario over the bus and check its [expect] bounds"

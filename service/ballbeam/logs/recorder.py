@@ -131,7 +131,7 @@ class Recorder:
         metadata: Mapping[str, Mapping[str, str]] | None = None,
         attachments: Iterable[tuple[str, str, bytes]] = (),
         queue_size: int = 65_536,
-        flush_interval_s: float = 0.05,
+        flush_interval_s: float = 0.03,  # a killed run loses at most about this much log
         chunk_size_bytes: int = 1 << 20,
     ) -> None:
         if queue_size < 1:

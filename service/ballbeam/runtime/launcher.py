@@ -7,6 +7,7 @@ daemon exits; the emulator is then stopped with SIGTERM.
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
@@ -14,6 +15,8 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+
+from mcap.writer import MCAP0_MAGIC
 
 from ballbeam.config import Config, load_config
 from ballbeam.errors import BallbeamError
@@ -49,6 +52,29 @@ def _stop(process: subprocess.Popen[str]) -> int:
         except subprocess.TimeoutExpired:
             process.kill()
     return process.wait()
+
+
+def _recover_cut_log(log_path: Path) -> str:
+    """A daemon that died without finishing its log leaves it cut short: make it whole in
+    place (every intact message kept) and say so; "" if the log was whole or absent."""
+    from ballbeam.logs.recover import recover_log, recovered_path
+
+    try:
+        with log_path.open("rb") as log:
+            log.seek(max(log_path.stat().st_size - len(MCAP0_MAGIC), 0))
+            if log.read() == MCAP0_MAGIC:
+                return ""  # it ends with the closing magic: the daemon finished its log
+    except FileNotFoundError:
+        return "; it had written no log yet"
+    try:
+        recovery = recover_log(log_path, recovered_path(log_path))
+        os.replace(recovery.destination, log_path)
+    except (BallbeamError, OSError) as error:
+        return f"; its log {log_path} is cut short and could not be recovered ({error})"
+    return (
+        f"; its log was cut short and has been made whole ({recovery.messages} intact "
+        f"messages kept): {log_path}"
+    )
 
 
 def launch_run(
@@ -108,8 +134,13 @@ def launch_run(
     emulator_exit = _stop(emulator)
     _, emulator_errors = emulator.communicate()
     if daemon.returncode != 0:
+        how = (
+            f"was killed by {signal.Signals(-daemon.returncode).name}"
+            if daemon.returncode < 0
+            else f"exited with {daemon.returncode}"
+        )
         raise RunFailedError(
-            f"the daemon exited with {daemon.returncode}:\n{_tail(daemon_errors)}"
+            f"the daemon {how}{_recover_cut_log(log_path)}:\n{_tail(daemon_errors)}"
             + (f"\nemulator said:\n{_tail(emulator_errors)}" if emulator_errors.strip() else "")
         )
     return LaunchResult(

@@ -1,0 +1,131 @@
+"""Make a cut log whole: every intact record of a log whose writer died, written again as a
+complete, indexed MCAP (what ``mcap recover`` does, with the official mcap library).
+
+A log cut short (the daemon killed, the machine down) ends inside a chunk: the records up to the
+last complete chunk are read with the library's stream reader (chunk CRCs checked), and written
+with its writer, which adds the summary, the indexes and the footer that a seeking reader needs.
+The messages keep their channel, sequence number and times; schemas, channels, attachments and
+metadata are copied as they were.
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+
+import zstandard
+from mcap.exceptions import McapError
+from mcap.records import Attachment, Channel, Footer, Header, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
+
+from ballbeam.errors import LogFormatError
+from ballbeam.files import not_a_regular_file
+
+# What the stream reader raises where a file stops being a readable MCAP (a cut record, a bad
+# CRC, a short magic).
+_WHERE_THE_CUT_IS = (
+    McapError, EOFError, ValueError, OSError, RuntimeError, struct.error, zstandard.ZstdError
+)
+RECORD_SIZE_LIMIT = 64 << 20  # no record of ours comes near this; a hostile one is refused
+
+
+@dataclass(frozen=True)
+class Recovery:
+    source: Path
+    destination: Path
+    was_complete: bool  # the source already ended with a footer
+    stopped_because: str | None  # why reading stopped before a footer (None: it had one)
+    messages: int
+    attachments: int
+    metadata: int
+    last_log_time_ns: int | None  # the latest message kept
+
+
+def recovered_path(source: Path) -> Path:
+    return source.with_name(f"{source.stem}.recovered.mcap")
+
+
+def recover_log(source: Path, destination: Path) -> Recovery:
+    """Write ``destination`` from the intact records of ``source``. LogFormatError if
+    ``source`` is not an MCAP file or holds nothing to recover; OSError if a file cannot be
+    read or written. ``destination`` is written to a temporary name and renamed when whole."""
+    problem = not_a_regular_file(source)
+    if problem is not None:
+        raise LogFormatError(f"{source}: not a log: {problem}")
+    if destination.resolve() == source.resolve():
+        raise LogFormatError(f"{source}: the recovered log must go to another file")
+    temporary = destination.with_name(f".{destination.name}.part")
+    try:
+        recovery = _copy_intact(source, destination, temporary)
+    except BaseException:
+        temporary.unlink(missing_ok=True)
+        raise
+    os.replace(temporary, destination)
+    return recovery
+
+
+def _copy_intact(source: Path, destination: Path, temporary: Path) -> Recovery:
+    counts = {"messages": 0, "attachments": 0, "metadata": 0}
+    last_log_time_ns: int | None = None
+    was_complete = False
+    stopped_because: str | None = None
+    schema_ids: dict[int, int] = {}
+    channel_ids: dict[int, int] = {}
+    with open(source, "rb") as reading, open(temporary, "wb") as writing:
+        writer: Writer | None = None
+        try:
+            for record in StreamReader(
+                reading, validate_crcs=True, record_size_limit=RECORD_SIZE_LIMIT
+            ).records:
+                if isinstance(record, Header):
+                    writer = Writer(writing, compression=CompressionType.ZSTD)
+                    writer.start(profile=record.profile, library=record.library)
+                    continue
+                if writer is None:
+                    raise LogFormatError(f"{source}: no MCAP header; nothing to recover")
+                if isinstance(record, Schema):
+                    schema_ids[record.id] = writer.register_schema(
+                        record.name, record.encoding, record.data
+                    )
+                elif isinstance(record, Channel):
+                    channel_ids[record.id] = writer.register_channel(
+                        record.topic, record.message_encoding,
+                        schema_ids.get(record.schema_id, 0), dict(record.metadata),
+                    )
+                elif isinstance(record, Message) and record.channel_id in channel_ids:
+                    writer.add_message(
+                        channel_ids[record.channel_id], record.log_time, record.data,
+                        record.publish_time, record.sequence,
+                    )
+                    counts["messages"] += 1
+                    last_log_time_ns = max(last_log_time_ns or 0, record.log_time)
+                elif isinstance(record, Attachment):
+                    writer.add_attachment(
+                        record.create_time, record.log_time, record.name, record.media_type,
+                        record.data,
+                    )
+                    counts["attachments"] += 1
+                elif isinstance(record, Metadata):
+                    writer.add_metadata(record.name, dict(record.metadata))
+                    counts["metadata"] += 1
+                elif isinstance(record, Footer):
+                    was_complete = True
+        except _WHERE_THE_CUT_IS as error:
+            # Where the cut is: everything before it has been copied.
+            stopped_because = f"{type(error).__name__}: {error}".rstrip(": ")
+        if writer is None:
+            raise LogFormatError(f"{source}: not an MCAP file (no header); nothing to recover")
+        writer.finish()  # type: ignore[no-untyped-call]
+        writing.flush()
+        os.fsync(writing.fileno())
+    return Recovery(
+        source=source,
+        destination=destination,
+        was_complete=was_complete,
+        stopped_because=None if was_complete else stopped_because or "the file ends early",
+        last_log_time_ns=last_log_time_ns,
+        **counts,
+    )
