@@ -115,8 +115,9 @@ def test_the_whole_daemon_in_process_runs_like_the_offline_loop(tmp_path: Path) 
     emulator = PlantEmulator(config, plant_bus, CONTRACT)
     plant = threading.Thread(target=emulator.run_lockstep, args=(stop_plant,), daemon=True)
     plant.start()
+    log_path = tmp_path / "run.mcap"
     try:
-        log_path = run_daemon(config, tmp_path / "run.mcap", None)
+        end_reason = run_daemon(config, log_path, None)
     finally:
         stop_plant.set()
         plant.join(timeout=10)
@@ -124,7 +125,7 @@ def test_the_whole_daemon_in_process_runs_like_the_offline_loop(tmp_path: Path) 
         plant_bus.shutdown()
     run_log = read_log(log_path)
     summary = summarise(run_log)
-    assert summary["end_reason"] == "completed" and summary["cycles"] == 1500
+    assert end_reason == summary["end_reason"] == "completed" and summary["cycles"] == 1500
     assert summary["frames_rejected"] == 0 and summary["frames_lost"] == 0
     assert replay.verify(run_log).ok
     # The voltage frame carries 1 mV, so the bus run is the offline loop up to that

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from ballbeam.errors import BallbeamError
+from ballbeam.runtime.exit_codes import HELP as EXIT_CODES_HELP
 from ballbeam.runtime.process import (
     add_config_arguments,
     config_from_arguments,
@@ -24,6 +25,7 @@ from ballbeam.runtime.process import (
 )
 
 EXIT_USAGE = 2
+THETA_BOUND_RESOLUTION_DEG = 1e-3
 
 
 def _positive_int(text: str) -> int:
@@ -115,15 +117,25 @@ def command_simulate(args: argparse.Namespace) -> int:
 def command_daemon(args: argparse.Namespace) -> int:
     from pathlib import Path
 
+    from ballbeam.runtime.daemon.loop import PlantLostError
     from ballbeam.runtime.daemon.node import run_daemon
+    from ballbeam.runtime.exit_codes import EXIT_PLANT_LOST, exit_code
     from ballbeam.runtime.process import new_log_path
 
     configure_logging()
     config = config_from_arguments(args)
     log_path = Path(args.log) if args.log else new_log_path(config.run.log_dir, config.plan.kind)
-    run_daemon(config, log_path, args.config)
+    try:
+        end_reason = run_daemon(config, log_path, args.config)
+    except PlantLostError as error:
+        print(f"ballbeam: error: {error}", file=sys.stderr)
+        return EXIT_PLANT_LOST
     print(log_path)
-    return 0
+    code = exit_code(end_reason)
+    if code:
+        print(f"ballbeam: the run ended with {end_reason}: exit {code} (log: {log_path})",
+              file=sys.stderr)
+    return code
 
 
 def command_emulator(args: argparse.Namespace) -> int:
@@ -137,6 +149,7 @@ def command_emulator(args: argparse.Namespace) -> int:
 def command_run(args: argparse.Namespace) -> int:
     from ballbeam.evaluation.summary import summarise
     from ballbeam.logs.reader import read_log
+    from ballbeam.runtime.exit_codes import exit_code
     from ballbeam.runtime.launcher import launch_run
 
     result = launch_run(args.config, args.overrides)
@@ -156,14 +169,20 @@ def command_run(args: argparse.Namespace) -> int:
             f"over {result.config.bus.interface}",
             summary,
         )
-    if summary.get("end_reason") != "completed":
+    end_reason = str(summary.get("end_reason"))
+    # The plant's truth is recorded at the truth frame's resolution (0.001°).
+    bound_deg = result.config.limits.theta_deg + THETA_BOUND_RESOLUTION_DEG
+    bound_broken = float(summary.get("max_abs_theta_deg") or 0.0) > bound_deg
+    code = exit_code(end_reason, bound_broken)
+    if code:
         print(
-            f"ballbeam: the run did not complete: {summary.get('end_reason')} "
-            f"(log: {result.log_path})",
+            f"ballbeam: the run ended with {end_reason}"
+            + (f" and |θ| reached {summary.get('max_abs_theta_deg')}° (bound "
+               f"{result.config.limits.theta_deg}°)" if bound_broken else "")
+            + f": exit {code} (log: {result.log_path})",
             file=sys.stderr,
         )
-        return 1
-    return 0
+    return code
 
 
 def _read_log_or_fail(path: str) -> Any:
@@ -334,13 +353,16 @@ def build_parser() -> argparse.ArgumentParser:
     simulate.set_defaults(handler=command_simulate)
 
     run = commands.add_parser(
-        "run", help="run emulator and daemon as two processes over the bus, record, summarise"
+        "run", help="run emulator and daemon as two processes over the bus, record, summarise",
+        epilog=EXIT_CODES_HELP,
     )
     add_config_arguments(run)
     run.add_argument("--json", action="store_true", help="print one JSON object")
     run.set_defaults(handler=command_run)
 
-    daemon = commands.add_parser("daemon", help="run the controller daemon alone")
+    daemon = commands.add_parser(
+        "daemon", help="run the controller daemon alone", epilog=EXIT_CODES_HELP
+    )
     add_config_arguments(daemon)
     daemon.add_argument("--log", metavar="MCAP", help="log file (default: a new one in logs/)")
     daemon.set_defaults(handler=command_daemon)

@@ -14,12 +14,14 @@ import re
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from mcap.writer import Writer
 
 from ballbeam import cli
 from ballbeam.config import Config
+from ballbeam.runtime.exit_codes import exit_code
 
 from ..conftest import ballbeam
 
@@ -192,3 +194,27 @@ def test_random_overrides_exit_0_or_2_and_never_raise(assignments: list[str], gl
     assert code in (0, 2), (argv, stderr.getvalue())
     if code == 2 and stderr.getvalue().startswith("ballbeam: error:"):
         assert len(stderr.getvalue().strip().splitlines()) == 1, stderr.getvalue()
+
+
+def test_a_run_that_breaks_its_angle_bound_exits_1(tmp_path: Path) -> None:
+    """A start at −52° under a 50° bound: the run completes, but the plant's truth went beyond
+    the bound, and ``ballbeam run`` says so (it exited 0 before)."""
+    result = ballbeam(
+        "run", "--set", "limits.theta_deg=50", "--set", "run.duration_s=0.5",
+        "--set", f"run.log_dir='{tmp_path}'", timeout_s=120,
+    )
+    assert result.returncode == 1, result.stderr
+    assert "bound 50.0°" in result.stderr and "exit 1" in result.stderr
+
+
+@pytest.mark.parametrize(
+    ("end_reason", "bound_broken", "code"),
+    [
+        ("completed", False, 0), ("SIGTERM", False, 0), ("completed", True, 1),
+        ("recorder_failed", False, 1), ("plant_lost", False, 3), ("plant_silent", True, 3),
+    ],
+)
+def test_exit_codes_follow_the_documented_table(
+    end_reason: str, bound_broken: bool, code: int
+) -> None:
+    assert exit_code(end_reason, bound_broken) == code

@@ -11,6 +11,7 @@ import pytest
 
 from ballbeam.evaluation.replay import verify
 from ballbeam.logs.reader import RunLog, read_log
+from ballbeam.runtime.exit_codes import EXIT_PLANT_LOST
 
 from ..conftest import ballbeam
 from .harness import (
@@ -59,8 +60,8 @@ def test_emulator_killed_realtime_daemon_faults_to_0v_and_finishes_its_file(
         bench.emulator.wait()
         daemon_exit = bench.wait_daemon(START_TIMEOUT_S)
         daemon_stderr = bench.stderr(bench.daemon)
-    # plant_lost ends the run normally: exit 0, with the reason in the file.
-    assert daemon_exit == 0, daemon_stderr[-2000:]
+    # plant_lost ends the run in order (0 V, the file finished) and says so: exit 3.
+    assert daemon_exit == EXIT_PLANT_LOST, daemon_stderr[-2000:]
     log = read_log(bench.log_path)
     assert not log.truncated, log.truncation_reason
     assert summary_meta(log)["end_reason"] == "plant_lost"
@@ -120,7 +121,7 @@ def test_emulator_killed_lockstep_daemon_stops_on_silence_and_finishes_its_file(
         bench.emulator.wait()
         daemon_exit = bench.wait_daemon(START_TIMEOUT_S)
         daemon_stderr = bench.stderr(bench.daemon)
-    assert daemon_exit == 0, daemon_stderr[-2000:]
+    assert daemon_exit == EXIT_PLANT_LOST, daemon_stderr[-2000:]
     log = read_log(bench.log_path)
     assert not log.truncated
     assert summary_meta(log)["end_reason"] == "plant_silent"

@@ -21,9 +21,12 @@ from mcap.writer import MCAP0_MAGIC
 from ballbeam.config import Config, load_config
 from ballbeam.errors import BallbeamError
 from ballbeam.runtime.bus import check_stays_on_host, free_udp_port, isolated_group
+from ballbeam.runtime.exit_codes import EXIT_FAILED, EXIT_OK, EXIT_PLANT_LOST
 from ballbeam.runtime.process import new_log_path
 
 STOP_GRACE_S = 5.0
+# The daemon's exits after which its run is recorded whole (summarised by ``ballbeam run``).
+RECORDED_RUN_CODES = frozenset({EXIT_OK, EXIT_FAILED, EXIT_PLANT_LOST})
 STARTUP_ALLOWANCE_S = 30.0
 
 
@@ -133,7 +136,7 @@ def launch_run(
         raise
     emulator_exit = _stop(emulator)
     _, emulator_errors = emulator.communicate()
-    if daemon.returncode != 0:
+    if daemon.returncode not in RECORDED_RUN_CODES:
         how = (
             f"was killed by {signal.Signals(-daemon.returncode).name}"
             if daemon.returncode < 0

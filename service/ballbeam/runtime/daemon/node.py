@@ -29,8 +29,9 @@ from ballbeam.runtime.stop import StopFlag
 log = logging.getLogger("ballbeam")
 
 
-def run_daemon(config: Config, log_path: Path, config_path: str | None) -> Path:
-    """Plan, synthesise, open the recorder and the bus, run, finish the file. Returns the log."""
+def run_daemon(config: Config, log_path: Path, config_path: str | None) -> str:
+    """Plan, synthesise, open the recorder and the bus, run, finish the file. Returns how the
+    run ended (``DaemonStats.end_reason``); PlantLostError if no plant answered at the start."""
     design = controller_design(config)  # before touching the bus: a bad config fails fast
     # The recorder's writer thread shares the GIL; switching sooner bounds how long it can
     # hold up the control loop's wake-up (measured: p99 lateness roughly halved).
@@ -84,4 +85,4 @@ def run_daemon(config: Config, log_path: Path, config_path: str | None) -> Path:
     finally:
         summary["recorder_dropped"] = str(recorder.dropped)
         recorder.close(summary=summary)
-    return log_path
+    return stats.end_reason
