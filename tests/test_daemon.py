@@ -139,3 +139,24 @@ def test_the_whole_daemon_in_process_runs_like_the_offline_loop(tmp_path: Path) 
     assert np.max(np.abs(theta)) < np.radians(0.5)
     assert np.max(np.abs(position)) < 1e-4
     assert summary["max_abs_theta_deg"] <= config.limits.theta_deg
+
+
+def test_after_a_watchdog_trip_the_plant_obeys_a_restarted_daemon_at_once() -> None:
+    """A restarted daemon counts its commands from 0 again; the old stream had reached 40.
+    Without a reset at the trip, its frames looked stale for up to 128 periods (42–120 ms of
+    ignored commands were measured in 4 of 8 restarts)."""
+    config = virtual_config(1.0)
+    bus = can.Bus(interface="virtual", channel=config.bus.channel)
+    emulator = PlantEmulator(config, bus, CONTRACT)
+    try:
+        for counter in range(41):
+            command = VoltageCommand(counter, 0.5, True, 0)
+            assert emulator._accept_command(framed(command)) is not None
+            emulator._apply(command, now_ns=counter * 1_000_000)
+        emulator._check_watchdog(now_ns=40_000_000 + emulator.watchdog_ns + 1)
+        assert emulator.watchdog_zeroed and emulator.voltage_v == 0.0
+        restarted = emulator._accept_command(framed(VoltageCommand(0, 1.0, True, 0)))
+        assert restarted is not None and restarted.voltage_v == 1.0
+    finally:
+        emulator.stop()
+        bus.shutdown()

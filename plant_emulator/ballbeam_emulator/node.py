@@ -151,6 +151,9 @@ class PlantEmulator:
             self.voltage_v = 0.0
             self.watchdog_zeroed = True
             self.counters.watchdog_trips += 1
+            # The commander went silent: whoever commands next (a restarted daemon counts from
+            # 0) is judged from its first frame, not as stale against the old stream's counter.
+            self.command_check.reset()
             log.warning("watchdog: no valid command for %.1f ms, voltage zeroed",
                         (now_ns - self.last_command_ns) / 1e6)
 
