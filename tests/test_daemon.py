@@ -27,7 +27,7 @@ from ballbeam.protocol.frames import (
     VoltageCommand,
 )
 from ballbeam.runtime.daemon.command_out import CommandOut
-from ballbeam.runtime.daemon.intake import SensorIntake
+from ballbeam.runtime.daemon.intake import SensorIntake, SentCommands
 from ballbeam.runtime.daemon.node import run_daemon
 from ballbeam.runtime.stop import StopFlag
 from ballbeam_emulator.node import PlantEmulator
@@ -60,7 +60,8 @@ def recording(tmp_path: Path) -> RunRecording:
 
 
 def test_intake_accepts_samples_in_order_and_judges_the_rest(recording: RunRecording) -> None:
-    intake = SensorIntake(CONTRACT, recording)
+    sent = SentCommands()
+    intake = SensorIntake(CONTRACT, recording, sent)
 
     def sensor(counter: int) -> can.Message:
         return framed(SensorFrame(counter, 10, -20, 0))
@@ -73,13 +74,20 @@ def test_intake_accepts_samples_in_order_and_judges_the_rest(recording: RunRecor
     assert intake.handle(sensor(7), 0, 0) == "ok"
     assert intake.sensor_check.lost == 1
     own = framed(VoltageCommand(0, 1.0, True, 7))
+    sent.note(bytes(own.data))
     assert intake.handle(own, 0, 0) is None and intake.own_frames == 1
+    # The same bytes again, or a command the daemon never sent: someone else's frame.
+    assert intake.handle(own, 0, 0) is None and intake.own_frames == 1
+    forged = framed(VoltageCommand(1, 5.0, True, 7))
+    assert intake.handle(forged, 0, 0) is None and intake.own_frames == 1
     corrupt = bytearray(sensor(8).data)
     corrupt[0] ^= 0xFF
     intake.handle(message(SENSOR_ID, bytes(corrupt)), 0, 0)
     extended = can.Message(arbitration_id=SENSOR_ID, data=bytes(8), is_extended_id=True)
     intake.handle(extended, 0, 0)
-    assert dict(intake.rejected) == {"stale": 1, "crc": 1, "foreign": 1}
+    assert dict(intake.rejected) == {
+        "stale": 1, "foreign_command": 2, "crc": 1, "foreign": 1
+    }
     # Truth pairs by counter; an unpaired ball frame is dropped.
     intake.handle(framed(TruthBall(7, 0.1, 0.0)), 0, 0)
     intake.handle(framed(TruthAngle(7, 0.2, 0.0)), 0, 0)

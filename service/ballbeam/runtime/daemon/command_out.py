@@ -9,14 +9,21 @@ import can
 from ballbeam.logs.recording import RunRecording
 from ballbeam.logs.topics import CAN_TX, COMMAND, CommandRecord
 from ballbeam.protocol.frames import VOLTAGE_COMMAND_ID, FrameContract, next_counter
-from ballbeam.runtime.daemon.intake import frame_record
+from ballbeam.runtime.daemon.intake import SentCommands, frame_record
 
 SHUTDOWN_REPEATS = 3  # the final 0 V is sent a few times: a frame can be lost
 
 
 class CommandOut:
-    def __init__(self, bus: can.BusABC, contract: FrameContract, recording: RunRecording) -> None:
+    def __init__(
+        self,
+        bus: can.BusABC,
+        contract: FrameContract,
+        recording: RunRecording,
+        sent: SentCommands | None = None,
+    ) -> None:
         self.bus = bus
+        self.sent = sent if sent is not None else SentCommands()
         self.contract = contract
         self.recording = recording
         self.counter = 0
@@ -56,6 +63,7 @@ class CommandOut:
 
     def _send_bytes(self, data: bytes, log_time_ns: int, cycle: int) -> None:
         message = can.Message(arbitration_id=VOLTAGE_COMMAND_ID, data=data, is_extended_id=False)
+        self.sent.note(data)  # before sending: the echo may come back at once
         try:
             self.bus.send(message)
         except can.CanError as error:

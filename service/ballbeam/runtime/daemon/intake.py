@@ -2,13 +2,15 @@
 
 Sensor frames must pass the contract and their counter check to become the latest sample;
 truth frames are paired (angle + ball, same counter) and recorded at their sample's time; the
-daemon's own commands looped back by the bus are counted and dropped; anything else is
-recorded as received and counted as rejected (never fatal).
+daemon's own commands looped back by the bus (the bytes it sent) are counted and dropped; a
+command frame it did not send is someone else's: recorded and counted as rejected
+(``rejected_foreign_command``); anything else is recorded as received and counted as rejected
+(never fatal).
 """
 
 from __future__ import annotations
 
-from collections import Counter
+from collections import Counter, deque
 
 import can
 
@@ -33,10 +35,35 @@ def frame_record(message: can.Message) -> CanFrameRecord:
     return CanFrameRecord(message.timestamp, message.arbitration_id, message.dlc, data)
 
 
+class SentCommands:
+    """The payloads of the daemon's latest command frames, each claimed once by its echo.
+
+    A bus that loops frames back (udp_multicast, SocketCAN with receive_own_messages) returns
+    each command within a period or so; a bus that does not simply lets old entries fall off.
+    """
+
+    def __init__(self, keep: int = 64) -> None:
+        self._pending: deque[bytes] = deque(maxlen=keep)
+
+    def note(self, data: bytes) -> None:
+        self._pending.append(data)
+
+    def claim(self, data: bytes) -> bool:
+        """True (and forgotten) if ``data`` is one of ours not yet echoed."""
+        try:
+            self._pending.remove(data)
+        except ValueError:
+            return False
+        return True
+
+
 class SensorIntake:
-    def __init__(self, contract: FrameContract, recording: RunRecording) -> None:
+    def __init__(
+        self, contract: FrameContract, recording: RunRecording, sent: SentCommands | None = None
+    ) -> None:
         self.contract = contract
         self.recording = recording
+        self.sent = sent if sent is not None else SentCommands()
         self.sensor_check = CounterCheck()
         self.latest: SensorFrame | None = None
         self.fresh = False  # a sample arrived that no cycle has used yet
@@ -62,10 +89,21 @@ class SensorIntake:
         # The contract is on standard-id data frames: an extended id that happens to have
         # the same number, a remote frame or an error frame is someone else's.
         foreign = message.is_extended_id or message.is_remote_frame or message.is_error_frame
-        if message.arbitration_id == VOLTAGE_COMMAND_ID and not foreign:
+        if (
+            message.arbitration_id == VOLTAGE_COMMAND_ID
+            and not foreign
+            and self.sent.claim(bytes(message.data))
+        ):
             self.own_frames += 1  # our own command looped back by the bus
             return None
         self.recording.write(CAN_RX, log_time_ns, frame_record(message))
+        if message.arbitration_id == VOLTAGE_COMMAND_ID and not foreign:
+            self.reject(
+                "foreign_command",
+                f"a command frame this daemon did not send: {bytes(message.data).hex()}",
+                log_time_ns, cycle,
+            )
+            return None
         if foreign:
             kind = ("extended-id" if message.is_extended_id
                     else "remote" if message.is_remote_frame else "error")

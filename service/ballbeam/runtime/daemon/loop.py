@@ -40,7 +40,7 @@ from ballbeam.logs.topics import (
 from ballbeam.protocol.frames import SENSOR_ID, CounterCheck, FrameContract
 from ballbeam.runtime.bus import recv_frame
 from ballbeam.runtime.daemon.command_out import CommandOut
-from ballbeam.runtime.daemon.intake import SensorIntake
+from ballbeam.runtime.daemon.intake import SensorIntake, SentCommands
 from ballbeam.runtime.stop import StopFlag
 from ballbeam.runtime.ticker import Ticker
 
@@ -95,8 +95,9 @@ class ControllerDaemon:
         self.bus = bus
         self.recording = recording
         self.stop = stop
-        self.intake = SensorIntake(contract, recording)
-        self.commands = CommandOut(bus, contract, recording)
+        sent = SentCommands()  # what the daemon sent: its echoes are not someone else's
+        self.intake = SensorIntake(contract, recording, sent)
+        self.commands = CommandOut(bus, contract, recording, sent)
         self.period_ns = config.controller.period_ns
         self.n_cycles = round(config.run.duration_s * config.controller.rate_hz)
         self.state = ControllerState()
