@@ -40,7 +40,7 @@ from .harness import (
 )
 
 KILLS_PER_MODE = 10
-# A killed daemon loses what its recorder had not flushed: one flush interval (50 ms), plus the
+# A killed daemon loses what its recorder had not flushed: one flush interval (30 ms), plus the
 # writer thread's poll (5 ms). Allowed: 100 ms, plus 50 ms for the writer thread being
 # descheduled or kept from the GIL on this shared two-core machine.
 TRUNCATION_BOUND_MS = 150.0
