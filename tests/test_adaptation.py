@@ -16,7 +16,12 @@ import pytest
 
 from ballbeam.assembly import run_offline
 from ballbeam.config import load_config
-from ballbeam.core.adaptation import EMPTY_FIT, BallGainAdaptation, DeadZoneLearning
+from ballbeam.core.adaptation import (
+    EMPTY_FIT,
+    BallGainAdaptation,
+    DeadZoneLearning,
+    NoiseAdaptation,
+)
 from ballbeam.core.control import ControllerState, control_cycle
 from ballbeam.core.plant import SensorReading
 
@@ -234,3 +239,62 @@ def test_coarse_counts_are_not_taken_for_a_dead_zone() -> None:
     state, rest_time_s = final_state(["sensors.encoder_counts_per_rev=1024", "sensors.adc_bits=12"])
     assert state.deadzone_v == pytest.approx(0.1, abs=0.05)
     assert rest_time_s is not None
+
+
+def noise_law(levels: tuple[float, ...] = (1.0, 2.0, 4.0)) -> NoiseAdaptation:
+    pole = 0.285  # 200 Hz first-order noise sampled at 1 kHz
+    gains = tuple(
+        tuple((float(level * row), float(-level * row)) for row in range(4))
+        for level in levels
+    )
+    return NoiseAdaptation(
+        levels=levels,
+        tracking_gains=gains,  # type: ignore[arg-type]
+        rest_gains=None,
+        expected_square=(6.0 - 8.0 * pole + 2.0 * pole * pole),  # σ = 1 unit
+        smoothing_per_cycle=1e-3 / 0.3,
+    )
+
+
+@pytest.mark.parametrize("true_level", [0.5, 1.0, 3.0, 5.0])
+def test_the_noise_level_is_measured_from_the_second_difference(true_level: float) -> None:
+    """First-order band-limited noise of std = true_level (the design assumes 1), plus a ball
+    moving on a parabola (its second difference is not noise): the measured level is the true
+    one within 10 % (never below 1, the design's own)."""
+    law = noise_law((1.0, 2.0, 4.0, 8.0))
+    rng = np.random.default_rng(2)
+    pole = 0.285
+    noise = true_level * rng.standard_normal()
+    mean_square = law.expected_square
+    positions: list[float] = []
+    for k in range(4000):
+        noise = pole * noise + math.sqrt(1 - pole * pole) * true_level * rng.standard_normal()
+        positions.append(noise + 0.5 * 0.37e-6 * k * k * 100)  # 0.37 m/s², measurement units
+        if len(positions) >= 3:
+            second = positions[-1] - 2 * positions[-2] + positions[-3]
+            mean_square = law.smoothed(mean_square, second)
+    assert law.level(mean_square) == pytest.approx(max(true_level, 1.0), rel=0.1)
+
+
+def test_the_filter_gain_is_interpolated_between_the_designed_levels() -> None:
+    law = noise_law()
+    assert law.gain(2.0, rest=False) == law.tracking_gains[1]
+    assert law.gain(1.0, rest=True) == law.tracking_gains[0]  # no rest table: the tracking one
+    midway = law.gain(3.0, rest=False)
+    for row, (a, b) in enumerate(midway):
+        assert a == pytest.approx(3.0 * row) and b == pytest.approx(-3.0 * row)
+    assert law.gain(99.0, rest=False) == law.tracking_gains[-1]  # clamped to the table
+
+
+def test_a_noisy_sensor_is_filtered_for_its_noise() -> None:
+    """5× the position noise: with the filter chosen for the measured level the ball rests
+    within 10 % of the minimum time and the input varies far less; with the design's filter it
+    rests at 1.76 T* (issue 12 asks for 1.4 at most)."""
+    adapted = run_offline(load_config(PAPER, ["plant.position_noise_m=1e-3"])).metrics
+    fixed = run_offline(
+        load_config(PAPER, ["plant.position_noise_m=1e-3", "observer.adapt_noise=false"])
+    ).metrics
+    assert adapted.input_tv_ratio is not None and fixed.input_tv_ratio is not None
+    assert adapted.rest_ratio is not None and fixed.rest_ratio is not None
+    assert adapted.rest_ratio <= 1.1 and fixed.rest_ratio > 1.4
+    assert adapted.input_tv_ratio < 0.8 * fixed.input_tv_ratio

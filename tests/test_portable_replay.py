@@ -53,7 +53,9 @@ def test_the_recorded_design_round_trips_bit_for_bit(design: ControllerDesign) -
     assert decoded.observer == design.observer
     assert decoded.guard == design.guard
     # Every learning and blending part of the law, present in the default design, comes back.
-    for part in ("rest_observer", "rest_gains", "adaptation", "deadzone_learning"):
+    for part in (
+        "rest_observer", "rest_gains", "adaptation", "deadzone_learning", "noise_adaptation"
+    ):
         assert getattr(design, part) is not None, part
         assert getattr(decoded, part) == getattr(design, part), part
     assert decoded.initial_state == design.initial_state

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ballbeam.config import Config
-from ballbeam.core.adaptation import BallGainAdaptation, DeadZoneLearning
+from ballbeam.core.adaptation import BallGainAdaptation, DeadZoneLearning, NoiseAdaptation
 from ballbeam.core.control import (
     ControllerDesign,
     ObserverLaw,
@@ -127,13 +127,15 @@ def controller_design(config: Config, plan: Plan | None = None) -> ControllerDes
         DEFAULT_POSITION_NOISE_M, adc_step_m / math.sqrt(12.0)
     )
 
-    def observer_law(input_noise_v: float, ball_noise_m_s2: float) -> ObserverLaw:
+    def observer_law(
+        input_noise_v: float, ball_noise_m_s2: float, noise_level: float = 1.0
+    ) -> ObserverLaw:
         gains = design_observer(
             model.discretize(period_s),
             input_noise_v=input_noise_v,
             ball_noise_m_s2=ball_noise_m_s2,
             angle_noise_rad=angle_noise_rad,
-            position_noise_m=position_noise_m,
+            position_noise_m=position_noise_m * noise_level,
         )
         return ObserverLaw.from_arrays(gains.Ad, gains.Bd, gains.C, gains.L)
 
@@ -144,6 +146,31 @@ def controller_design(config: Config, plan: Plan | None = None) -> ControllerDes
         # tracking one, which must follow a fast path, can.
         rest_observer = observer_law(
             observer_cfg.rest_input_noise_v, observer_cfg.rest_ball_noise_m_s2
+        )
+    noise_adaptation = None
+    if observer_cfg.adapt_noise:
+        levels = observer_cfg.noise_levels
+        rest_table = None
+        if observer_cfg.rest_filter:
+            rest_table = tuple(
+                observer_law(
+                    observer_cfg.rest_input_noise_v, observer_cfg.rest_ball_noise_m_s2, level
+                ).L
+                for level in levels
+            )
+        # E[(Δ²n)²] of first-order band-limited noise of std σ and pole a per period:
+        # σ²(6 − 8a + 2a²), in measurement units (the sensor gain times metres).
+        pole = math.exp(-2.0 * math.pi * observer_cfg.noise_bandwidth_hz * period_s)
+        sigma_y = constants.position_sensor_gain * position_noise_m
+        noise_adaptation = NoiseAdaptation(
+            levels=levels,
+            tracking_gains=tuple(
+                observer_law(observer_cfg.input_noise_v, observer_cfg.ball_noise_m_s2, level).L
+                for level in levels
+            ),
+            rest_gains=rest_table,
+            expected_square=sigma_y * sigma_y * (6.0 - 8.0 * pole + 2.0 * pole * pole),
+            smoothing_per_cycle=min(period_s / observer_cfg.noise_time_constant_s, 1.0),
         )
     guard = _angle_guard(config, model) if config.controller.theta_guard else None
     n_reference = tracker.K.shape[0]
@@ -167,6 +194,7 @@ def controller_design(config: Config, plan: Plan | None = None) -> ControllerDes
         rest_gains=rest_gains,
         adaptation=_ball_gain_adaptation(config, model, rest_from_cycle, position_noise_m),
         deadzone_learning=_deadzone_learning(config),
+        noise_adaptation=noise_adaptation,
         initial_state=as_row4(initial),
         angle_per_count=constants.angle_sensor_gain * encoder_step_rad,
         position_per_count=constants.position_sensor_gain * adc_step_m,

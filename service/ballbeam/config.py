@@ -11,6 +11,7 @@ config argument that names no file is looked up there (``paper``, ``paths/bang_b
 
 from __future__ import annotations
 
+import itertools
 import math
 import tomllib
 from collections.abc import Iterable, Mapping
@@ -192,6 +193,29 @@ class ObserverSection(_Section):
     position_noise_m: float | None = Field(
         None, gt=0, description="position measurement noise std; default from plant noise"
     )
+    noise_bandwidth_hz: float = Field(
+        200.0, gt=0, le=1e6, description="the position noise's bandwidth the design assumes"
+    )
+    adapt_noise: bool = Field(
+        True, description="measure the position noise while running; filter for that level"
+    )
+    noise_levels: tuple[float, ...] = Field(
+        (1.0, 2.0, 3.0, 5.0, 8.0),
+        description="noise levels (× the assumed) at which filters are designed and "
+        "interpolated",
+    )
+    noise_time_constant_s: float = Field(
+        0.3, gt=0, le=60, description="noise measurement: smoothing time constant"
+    )
+
+    @field_validator("noise_levels")
+    @classmethod
+    def _levels_increase_from_one(cls, levels: tuple[float, ...]) -> tuple[float, ...]:
+        if len(levels) < 2 or levels[0] != 1.0 or any(
+            not b > a for a, b in itertools.pairwise(levels)
+        ):
+            raise ValueError("noise_levels must start at 1 and increase, at least two of them")
+        return levels
 
 
 class ControllerSection(_Section):

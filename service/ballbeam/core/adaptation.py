@@ -160,3 +160,56 @@ class DeadZoneLearning:
         explained_v = mean_v - (mean_v - deadzone_v) * measured
         learnt = deadzone_v + self.rate * (explained_v - deadzone_v)
         return min(max(learnt, 0.0), self.max_v)
+
+
+Gain = tuple[tuple[float, float], tuple[float, float], tuple[float, float], tuple[float, float]]
+
+
+@dataclass(frozen=True)
+class NoiseAdaptation:
+    """The position sensor's noise level measured while the run goes, and the filter designed
+    for it.
+
+    The observer is a steady-state Kalman filter for an assumed position noise σ; a sensor
+    noisier than that is followed too closely, and the tracker turns the noise into command
+    chatter (5× noise: input variation 3.4 times the plan's) and into a ball that will not rest.
+    The second difference of the measured position, y[k] − 2y[k−1] + y[k−2], is noise alone
+    (the ball's own motion adds well under a micrometre in a period), so its mean square,
+    smoothed over ``smoothing_per_cycle``⁻¹ cycles, against the value the design's noise model
+    predicts (``expected_square``) measures the noise level m = σ_actual/σ. The filter's gains
+    are designed at the levels ``levels`` (tracking and, if any, rest) and interpolated at m,
+    clamped to the table (never lighter than the design's own).
+    """
+
+    levels: tuple[float, ...]
+    tracking_gains: tuple[Gain, ...]
+    rest_gains: tuple[Gain, ...] | None
+    expected_square: float  # E[(Δ²y)²] under the design's noise model [measurement units²]
+    smoothing_per_cycle: float
+
+    def smoothed(self, mean_square: float, second_difference: float) -> float:
+        return mean_square + self.smoothing_per_cycle * (
+            second_difference * second_difference - mean_square
+        )
+
+    def level(self, mean_square: float) -> float:
+        ratio = mean_square / self.expected_square
+        level = math.sqrt(ratio) if ratio > 1.0 else 1.0
+        return min(max(level, self.levels[0]), self.levels[-1])
+
+    def gain(self, level: float, rest: bool) -> Gain:
+        """The Kalman gain at noise level ``level``, interpolated between the table's."""
+        table = self.rest_gains if rest and self.rest_gains is not None else self.tracking_gains
+        levels = self.levels
+        upper = 1
+        while upper < len(levels) - 1 and levels[upper] < level:
+            upper += 1
+        low, high = levels[upper - 1], levels[upper]
+        f = min(max((level - low) / (high - low), 0.0), 1.0)
+        a, b = table[upper - 1], table[upper]
+        return (
+            (a[0][0] + f * (b[0][0] - a[0][0]), a[0][1] + f * (b[0][1] - a[0][1])),
+            (a[1][0] + f * (b[1][0] - a[1][0]), a[1][1] + f * (b[1][1] - a[1][1])),
+            (a[2][0] + f * (b[2][0] - a[2][0]), a[2][1] + f * (b[2][1] - a[2][1])),
+            (a[3][0] + f * (b[3][0] - a[3][0]), a[3][1] + f * (b[3][1] - a[3][1])),
+        )

@@ -19,6 +19,8 @@ from ballbeam.core.adaptation import (
     DeadZoneLearning,
     DeadZoneWindow,
     FitSums,
+    Gain,
+    NoiseAdaptation,
 )
 from ballbeam.core.guard import AngleGuard, guarded_voltage
 from ballbeam.core.model import Row4, as_row4
@@ -118,6 +120,7 @@ class ControllerDesign:
     rest_gains: RestGains | None
     adaptation: BallGainAdaptation | None  # None: the design's ball gain, the plan's pace
     deadzone_learning: DeadZoneLearning | None  # None: the design's dead zone throughout
+    noise_adaptation: NoiseAdaptation | None  # None: the filter for the design's noise only
     initial_state: Row4  # the planned start: supplies the rates no sensor measures
     angle_per_count: float  # measurement units (57·θ) per encoder count
     position_per_count: float  # measurement units (100·x) per ADC count
@@ -262,6 +265,11 @@ class ControllerState:
     pace: float = 1.0  # the path's clock rate: τ advances by this each cycle
     deadzone_v: float | None = None  # the learnt dead zone (None: the design's)
     deadzone_window: DeadZoneWindow | None = None  # the dead-zone learning's open window
+    # The noise measurement: the mean square of the position's second difference (None: not
+    # started; then the design's expectation) and the last two positions measured in a row.
+    noise_mean_square: float | None = None
+    last_positions: tuple[float, ...] = ()
+
 
 
 @dataclass(frozen=True)
@@ -295,13 +303,15 @@ def predict(observer: ObserverLaw, estimate: Row4, input_v: float, ball_ratio: f
     )
 
 
-def correct(observer: ObserverLaw, prediction: Row4, measurement: Row2) -> Row4:
-    """x̂ = x̄ + L (y − C x̄)."""
+def correct(
+    observer: ObserverLaw, prediction: Row4, measurement: Row2, gain: Gain | None = None
+) -> Row4:
+    """x̂ = x̄ + L (y − C x̄), L the observer's or ``gain``."""
     x0, x1, x2, x3 = prediction
     (p0, p1, p2, p3), (q0, q1, q2, q3) = observer.C
     innovation_0 = measurement[0] - (p0 * x0 + p1 * x1 + p2 * x2 + p3 * x3)
     innovation_1 = measurement[1] - (q0 * x0 + q1 * x1 + q2 * x2 + q3 * x3)
-    (l00, l01), (l10, l11), (l20, l21), (l30, l31) = observer.L
+    (l00, l01), (l10, l11), (l20, l21), (l30, l31) = observer.L if gain is None else gain
     return (
         x0 + (l00 * innovation_0 + l01 * innovation_1),
         x1 + (l10 * innovation_0 + l11 * innovation_1),
@@ -335,8 +345,20 @@ def control_cycle(
     elif reading is None:
         estimate = state.prediction  # coast on the model
     else:
+        measurement = design.measurement(reading)
         observer = design.observer_at(int(state.path_position))
-        estimate = correct(observer, state.prediction, design.measurement(reading))
+        noise = design.noise_adaptation
+        if noise is None:
+            estimate = correct(observer, state.prediction, measurement)
+        else:
+            mean_square = (
+                noise.expected_square if state.noise_mean_square is None
+                else state.noise_mean_square
+            )
+            gain = noise.gain(
+                noise.level(mean_square), int(state.path_position) >= design.rest_from_cycle
+            )
+            estimate = correct(observer, state.prediction, measurement, gain)
     position = state.path_position
     reference, reference_input_v = design.reference(position)
     fit, ratio = state.fit, state.ball_gain_ratio
@@ -374,16 +396,35 @@ def control_cycle(
             drive_v = design.modelled_drive_v(voltage_v, deadzone_v)
     # Rest and tracking observers share Ad, Bd: predicting with either is the same.
     prediction = predict(design.observer, estimate, drive_v, ratio)
+    noise_mean_square, last_positions = _measure_noise(design, state, reading)
     return (
         ControllerState(
             cycle=state.cycle + 1, prediction=prediction, path_position=position + pace,
             fit=fit, ball_gain_ratio=ratio, pace=pace, deadzone_v=deadzone_v,
-            deadzone_window=window,
+            deadzone_window=window, noise_mean_square=noise_mean_square,
+            last_positions=last_positions,
         ),
         CycleOutput(
             voltage_v, requested_v, estimate, reading is not None, reference, reference_input_v
         ),
     )
+
+
+def _measure_noise(
+    design: ControllerDesign, state: ControllerState, reading: SensorReading | None
+) -> tuple[float | None, tuple[float, ...]]:
+    """The noise measurement after this cycle: a second difference needs three positions
+    measured in consecutive cycles (a missed one restarts the chain)."""
+    noise = design.noise_adaptation
+    if noise is None or reading is None:
+        return state.noise_mean_square, ()
+    position_y = design.measurement(reading)[1]
+    mean_square = state.noise_mean_square
+    if len(state.last_positions) == 2:
+        older, last = state.last_positions
+        start = noise.expected_square if mean_square is None else mean_square
+        mean_square = noise.smoothed(start, position_y - 2.0 * last + older)
+    return mean_square, (*state.last_positions[-1:], position_y)
 
 
 def coast_cycles(
@@ -404,6 +445,7 @@ def coast_cycles(
         cycle=state.cycle + count, prediction=prediction,
         path_position=state.path_position + count * state.pace, fit=fit,
         ball_gain_ratio=state.ball_gain_ratio, pace=state.pace, deadzone_v=state.deadzone_v,
+        noise_mean_square=state.noise_mean_square,  # the chain of positions restarts
     )
 
 

@@ -39,6 +39,9 @@ adapt_*                              present with the ball-gain adaptation: desi
                                      position_noise_m, confidence, min_ratio, max_ratio,
                                      period_s, until_cycle, back_emf_v_s_per_rad,
                                      pace_step_per_cycle (scalars)
+noise_levels, noise_tracking_L   present with noise adaptation: levels (K,), gains (K, 4, 2),
+noise_rest_L, noise_expected_square, noise_smoothing_per_cycle: rest gains (K, 4, 2)
+                                     (optional), scalars
 learn_*                              present with dead-zone learning: min_motion_rad,
                                      judge_motion_rad, rate, below_v, max_v (scalars)
 soft_*                               present with the soft cap: theta_limit_rad,
@@ -58,7 +61,7 @@ from typing import Any
 
 import numpy as np
 
-from ballbeam.core.adaptation import BallGainAdaptation, DeadZoneLearning
+from ballbeam.core.adaptation import BallGainAdaptation, DeadZoneLearning, Gain, NoiseAdaptation
 from ballbeam.core.control import ControllerDesign, ObserverLaw, RestGains
 from ballbeam.core.guard import AngleGuard, SoftCap
 from ballbeam.core.model import Row4, as_row4
@@ -111,6 +114,14 @@ def encode_design(design: ControllerDesign) -> bytes:
     if adaptation is not None:
         arrays.update({f"adapt_{name}": _f8(getattr(adaptation, name)) for name in _ADAPT_SCALARS})
         arrays["adapt_until_cycle"] = _f8(adaptation.until_cycle)
+    noise = design.noise_adaptation
+    if noise is not None:
+        arrays["noise_levels"] = _f8(noise.levels)
+        arrays["noise_tracking_L"] = _f8(noise.tracking_gains)
+        if noise.rest_gains is not None:
+            arrays["noise_rest_L"] = _f8(noise.rest_gains)
+        arrays["noise_expected_square"] = _f8(noise.expected_square)
+        arrays["noise_smoothing_per_cycle"] = _f8(noise.smoothing_per_cycle)
     learning = design.deadzone_learning
     if learning is not None:
         arrays.update({f"learn_{name}": _f8(getattr(learning, name)) for name in _LEARN_SCALARS})
@@ -179,6 +190,19 @@ def decode_design(data: bytes, where: str) -> ControllerDesign:
                 **{name: _scalar(arrays[f"adapt_{name}"]) for name in _ADAPT_SCALARS},
                 until_cycle=_count(arrays["adapt_until_cycle"]),
             )
+        noise = None
+        if "noise_levels" in arrays:
+            levels = tuple(float(v) for v in _table(arrays["noise_levels"], "noise"))
+            noise = NoiseAdaptation(
+                levels=levels,
+                tracking_gains=_gains(arrays["noise_tracking_L"], len(levels)),
+                rest_gains=(
+                    _gains(arrays["noise_rest_L"], len(levels))
+                    if "noise_rest_L" in arrays else None
+                ),
+                expected_square=_scalar(arrays["noise_expected_square"]),
+                smoothing_per_cycle=_scalar(arrays["noise_smoothing_per_cycle"]),
+            )
         learning = None
         if "learn_rate" in arrays:
             learning = DeadZoneLearning(
@@ -199,6 +223,7 @@ def decode_design(data: bytes, where: str) -> ControllerDesign:
             rest_gains=rest_gains,
             adaptation=adaptation,
             deadzone_learning=learning,
+            noise_adaptation=noise,
         )
     except LogFormatError:
         raise
@@ -207,6 +232,15 @@ def decode_design(data: bytes, where: str) -> ControllerDesign:
         raise LogFormatError(f"{where}: recorded controller design unusable: {detail}") from (
             error
         )
+
+
+def _gains(array: np.ndarray, count: int) -> tuple[Gain, ...]:
+    if array.shape != (count, 4, 2) or not np.isfinite(array).all():
+        raise ValueError(f"noise filter gains must be ({count}, 4, 2) finite numbers")
+    return tuple(
+        tuple((float(a), float(b)) for a, b in gain)  # type: ignore[misc]
+        for gain in array
+    )
 
 
 def design_difference(recorded: ControllerDesign, resynthesised: ControllerDesign) -> float:
