@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import json
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 
+from ..conftest import ballbeam
 from .harness import FIGURES, Bench, Outcome, figure, run_to_end
 
 # ---- the clean reference ------------------------------------------------------------------
@@ -23,6 +25,20 @@ def clean_realtime(tmp_path_factory: pytest.TempPathFactory) -> Outcome:
     assert outcome.summary["settle_time_s"] is not None
     figure("clean_settle_s", outcome.summary["settle_time_s"])
     return outcome
+
+
+@pytest.fixture(scope="session")
+def lockstep_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A whole log of a short lock-step run, written by this project's recorder (read only:
+    tests that damage it work on copies)."""
+    directory = tmp_path_factory.mktemp("lockstep-log")
+    result = ballbeam(
+        "run", "--set", "run.duration_s=1.0", "--set", f"run.log_dir='{directory}'",
+        timeout_s=120,
+    )
+    assert result.returncode == 0, result.stderr
+    (log,) = directory.glob("*.mcap")
+    return log
 
 
 # Each module prints the figures its tests gave, then starts afresh for the next module.

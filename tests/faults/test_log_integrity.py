@@ -26,19 +26,6 @@ DATA_END_OPCODE = 0x0F
 PEAK_MEMORY_LIMIT_MIB = 256
 
 
-@pytest.fixture(scope="module")
-def recorded_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A short lock-step run's log, written by this project's recorder."""
-    directory = tmp_path_factory.mktemp("integrity")
-    result = ballbeam(
-        "run", "--set", "run.duration_s=0.6", "--set", f"run.log_dir='{directory}'",
-        timeout_s=120,
-    )
-    assert result.returncode == 0, result.stderr
-    (log,) = directory.glob("*.mcap")
-    return log
-
-
 def records(data: bytes) -> list[tuple[int, int, int]]:
     """(opcode, start, end) of each record after the magic, up to the footer."""
     found = []
@@ -54,19 +41,19 @@ def records(data: bytes) -> list[tuple[int, int, int]]:
     return found
 
 
-def test_our_logs_carry_a_correct_data_section_crc(recorded_log: Path) -> None:
-    data = recorded_log.read_bytes()
+def test_our_logs_carry_a_correct_data_section_crc(lockstep_log: Path) -> None:
+    data = lockstep_log.read_bytes()
     ((_, start, _),) = [r for r in records(data) if r[0] == DATA_END_OPCODE]
     (crc,) = struct.unpack_from("<I", data, start + 9)
     assert crc != 0 and crc == zlib.crc32(data[:start])
-    read_log(recorded_log)  # and the reader checks it without complaint
+    read_log(lockstep_log)  # and the reader checks it without complaint
 
 
 @pytest.mark.parametrize("damage", ["duplicate", "remove"])
 def test_a_duplicated_or_removed_chunk_is_detected(
-    recorded_log: Path, tmp_path: Path, damage: str
+    lockstep_log: Path, tmp_path: Path, damage: str
 ) -> None:
-    data = recorded_log.read_bytes()
+    data = lockstep_log.read_bytes()
     chunks = [r for r in records(data) if r[0] == CHUNK_OPCODE]
     assert len(chunks) >= 2
     _, start, end = chunks[len(chunks) // 2]

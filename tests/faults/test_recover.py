@@ -9,12 +9,12 @@ end before the cut), read with the official mcap reader.
 from __future__ import annotations
 
 import contextlib
+import importlib
 import io
 import random
-import signal
-import threading
-import time
+import sys
 from pathlib import Path
+from types import ModuleType
 
 import pytest
 import zstandard
@@ -24,25 +24,12 @@ from mcap.records import Chunk, Message
 from mcap.stream_reader import StreamReader
 
 from ballbeam.logs.recover import recover_log
-from ballbeam.runtime.launcher import RunFailedError, launch_run
 
 from ..conftest import ballbeam
 
 CUTS = 40
 KILLS = 4  # in the suite; bench/recover_soak.py kills 100 runs
 MAX_LOST_MS = 50.0
-
-
-@pytest.fixture(scope="module")
-def complete_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    directory = tmp_path_factory.mktemp("recover")
-    result = ballbeam(
-        "run", "--set", "run.duration_s=1.0", "--set", f"run.log_dir='{directory}'",
-        timeout_s=120,
-    )
-    assert result.returncode == 0, result.stderr
-    (log,) = directory.glob("*.mcap")
-    return log
 
 
 def summary_of(path: Path):  # type: ignore[no-untyped-def]
@@ -72,9 +59,9 @@ def messages_per_chunk(log: Path) -> list[tuple[int, int]]:
     return counted
 
 
-def test_every_intact_message_survives_a_cut_anywhere(complete_log: Path, tmp_path: Path) -> None:
-    data = complete_log.read_bytes()
-    chunks = messages_per_chunk(complete_log)
+def test_every_intact_message_survives_a_cut_anywhere(lockstep_log: Path, tmp_path: Path) -> None:
+    data = lockstep_log.read_bytes()
+    chunks = messages_per_chunk(lockstep_log)
     rng = random.Random(13)
     for _ in range(CUTS):
         cut = rng.randrange(len(data) // 20, len(data))
@@ -91,11 +78,11 @@ def test_every_intact_message_survives_a_cut_anywhere(complete_log: Path, tmp_pa
 
 
 def test_recover_refuses_to_overwrite_and_names_bad_input(
-    complete_log: Path, tmp_path: Path
+    lockstep_log: Path, tmp_path: Path
 ) -> None:
     existing = tmp_path / "exists.mcap"
     existing.write_bytes(b"keep me")
-    refused = ballbeam("recover", str(complete_log), "-o", str(existing))
+    refused = ballbeam("recover", str(lockstep_log), "-o", str(existing))
     assert refused.returncode == 2 and "exists" in refused.stderr
     assert existing.read_bytes() == b"keep me"
     not_mcap = tmp_path / "text.mcap"
@@ -106,42 +93,22 @@ def test_recover_refuses_to_overwrite_and_names_bad_input(
     assert not (tmp_path / "out.mcap").exists() and not list(tmp_path.glob(".*.part"))
 
 
-def kill_daemon_after(  # type: ignore[no-untyped-def]
-    log_dir: Path, delay_s: float, killed_at_ns: list[int]
-):
-    def on_started(processes) -> None:  # type: ignore[no-untyped-def]
-        def kill() -> None:
-            # From the moment the daemon has opened its log (it may still be starting before).
-            give_up = time.monotonic() + 60
-            while not any(log_dir.glob("*.mcap")) and time.monotonic() < give_up:
-                time.sleep(0.01)
-            time.sleep(delay_s)
-            killed_at_ns.append(time.time_ns())
-            processes["daemon"].send_signal(signal.SIGKILL)
-
-        threading.Thread(target=kill, daemon=True).start()
-
-    return on_started
+BENCH = Path(__file__).resolve().parents[2] / "bench"
 
 
-def test_a_run_whose_daemon_is_killed_recovers_its_log(tmp_path: Path) -> None:
+@pytest.fixture(scope="module")
+def soak() -> ModuleType:
+    """bench/recover_soak.py: the kill this test repeats a few times, the bench 100 times."""
+    if str(BENCH) not in sys.path:
+        sys.path.insert(0, str(BENCH))
+    return importlib.import_module("recover_soak")
+
+
+def test_a_run_whose_daemon_is_killed_recovers_its_log(tmp_path: Path, soak: ModuleType) -> None:
+    """SIGKILL the daemon of real-time runs at seeded random moments: ``ballbeam run`` makes
+    each log whole (a seeking reader opens it) and loses at most about one recorder flush."""
     rng = random.Random(5)
     for attempt in range(KILLS):
-        killed_at_ns: list[int] = []
-        log_dir = tmp_path / f"run{attempt}"
-        with pytest.raises(RunFailedError) as failed:
-            launch_run(
-                None,
-                [
-                    "run.mode='realtime'", "run.duration_s=5", f"run.log_dir='{log_dir}'",
-                ],
-                on_started=kill_daemon_after(log_dir, rng.uniform(0.2, 2.0), killed_at_ns),
-            )
-        message = str(failed.value)
-        assert "killed by SIGKILL" in message and "made whole" in message, message
-        (log,) = log_dir.glob("*.mcap")
-        whole = summary_of(log)  # a seeking reader opens it: summary, indexes, footer
-        assert whole is not None and whole.statistics is not None
-        assert whole.statistics.message_count > 0
-        lost_ms = (killed_at_ns[0] - whole.statistics.message_end_time) / 1e6
+        recovered, lost_ms, why = soak.kill_one(tmp_path / f"run{attempt}", rng.uniform(0.2, 2.0))
+        assert recovered, why
         assert lost_ms <= MAX_LOST_MS, f"{lost_ms:.1f} ms of log lost"
