@@ -281,6 +281,10 @@ def command_replay(args: argparse.Namespace) -> int:
             lateness_us=series.lateness_ns * 1e-3,
             lateness_time_s=series.cycle_time_s,
         )
+    if args.report:
+        from ballbeam.evaluation.report import write_report
+
+        write_report(run_log, summary, args.report)
     if args.json:
         print_json(summary)
     else:
@@ -371,6 +375,10 @@ def build_parser() -> argparse.ArgumentParser:
     replay.add_argument("log", metavar="LOG.mcap")
     replay.add_argument("--json", action="store_true", help="print one JSON object")
     replay.add_argument("--plot", metavar="PNG", help="write a paper-style figure with timing")
+    replay.add_argument(
+        "--report", metavar="HTML",
+        help="write one self-contained page: metrics, figures, faults, timing, the config",
+    )
     replay.add_argument(
         "--verify",
         action="store_true",

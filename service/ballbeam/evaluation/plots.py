@@ -1,9 +1,11 @@
-"""Paper-style figures (x with x_d; θ with θ_d and the ±limit lines; u), written to PNG."""
+"""Paper-style figures (x with x_d; θ with θ_d and the ±limit lines; u), written to PNG, or
+to SVG for the HTML report."""
 
 from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import IO
 
 import numpy as np
 
@@ -11,7 +13,7 @@ from ballbeam.errors import BallbeamError
 
 
 def plot_run(
-    path: str | Path,
+    path: str | Path | IO[bytes],
     time_s: np.ndarray,
     true_states: np.ndarray,
     reference_states: np.ndarray,
@@ -20,8 +22,10 @@ def plot_run(
     title: str,
     lateness_us: np.ndarray | None = None,
     lateness_time_s: np.ndarray | None = None,
+    file_format: str | None = None,
 ) -> None:
-    """Write the figure; an extra panel shows loop lateness when given (replay)."""
+    """Write the figure (to a path, or a binary stream in ``file_format``); an extra panel
+    shows loop lateness when given (replay)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -52,7 +56,7 @@ def plot_run(
     figure.suptitle(title)
     figure.tight_layout()
     try:
-        figure.savefig(path, dpi=110)
+        figure.savefig(path, dpi=110, format=file_format)
     except OSError as error:
         raise BallbeamError(f"cannot write plot {path}: {error}") from error
     finally:
