@@ -65,9 +65,10 @@ def test_the_installed_wheel_runs_verifies_and_regresses_from_an_empty_directory
     log = Path(summary["log_path"])
     assert log.is_file() and (empty / "logs") in log.parents
 
-    verified = run([ballbeam, "replay", str(log), "--verify", "--json"], cwd=empty)
+    verified = run([ballbeam, "replay", str(log), "--verify", "--json", "--foxglove"], cwd=empty)
     assert verified.returncode == 0, verified.stderr
     assert json.loads(verified.stdout)["verify_ok"] is True
+    assert (log.parent / "ballbeam.foxglove-layout.json").is_file()  # the layout is package data
 
     listed = run([ballbeam, "configs"], cwd=empty)
     assert listed.returncode == 0 and "scenarios/noise_heavy" in listed.stdout, listed.stderr

@@ -285,6 +285,18 @@ def command_replay(args: argparse.Namespace) -> int:
         from ballbeam.evaluation.report import write_report
 
         write_report(run_log, summary, args.report)
+    foxglove_steps = None
+    if args.foxglove:
+        from ballbeam.errors import LogFormatError
+        from ballbeam.evaluation.foxglove import how_to_open
+
+        try:
+            foxglove_steps = how_to_open(args.log)
+        except OSError as error:
+            raise LogFormatError(
+                f"cannot write the Foxglove layout next to {args.log}: "
+                f"{error.strerror or error}"
+            ) from error
     if args.json:
         print_json(summary)
     else:
@@ -294,6 +306,9 @@ def command_replay(args: argparse.Namespace) -> int:
                 f"read up to {summary['last_time_s']:.3f} s"
             )
         print_table(f"replay of {args.log}", summary)
+    if foxglove_steps is not None:
+        # After the figures; on stderr with --json, so that stdout stays one JSON object.
+        print(foxglove_steps, file=sys.stderr if args.json else sys.stdout)
     return exit_code
 
 
@@ -375,6 +390,10 @@ def build_parser() -> argparse.ArgumentParser:
     replay.add_argument("log", metavar="LOG.mcap")
     replay.add_argument("--json", action="store_true", help="print one JSON object")
     replay.add_argument("--plot", metavar="PNG", help="write a paper-style figure with timing")
+    replay.add_argument(
+        "--foxglove", action="store_true",
+        help="print how to open the log in Foxglove with the shipped layout (written beside it)",
+    )
     replay.add_argument(
         "--report", metavar="HTML",
         help="write one self-contained page: metrics, figures, faults, timing, the config",
