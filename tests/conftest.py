@@ -2,15 +2,26 @@
 
 from __future__ import annotations
 
+import importlib
 import subprocess
 import sys
 from pathlib import Path
+from types import ModuleType
 
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIGS = REPO / "configs"
 PAPER = CONFIGS / "paper.toml"
+BENCH = REPO / "bench"
+
+
+def import_bench(name: str) -> ModuleType:
+    """A bench/ script as a module. On the path, not loaded from its file: processes it spawns
+    import it by name."""
+    if str(BENCH) not in sys.path:
+        sys.path.insert(0, str(BENCH))
+    return importlib.import_module(name)
 
 
 def ballbeam_argv(*args: str) -> list[str]:

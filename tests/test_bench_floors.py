@@ -6,11 +6,8 @@ frames it claims over a private ff11 bus, and that the stall probe probes every 
 
 from __future__ import annotations
 
-import importlib
 import os
-import sys
 import time
-from pathlib import Path
 from types import ModuleType
 
 import pytest
@@ -18,17 +15,12 @@ import pytest
 from ballbeam.config import load_config
 from ballbeam.runtime.bus import INTERFACE_LOCAL_SCOPE, multicast_scope
 
-from .conftest import PAPER
-
-BENCH = Path(__file__).resolve().parents[1] / "bench"
+from .conftest import PAPER, import_bench
 
 
 @pytest.fixture(scope="module")
 def floors() -> ModuleType:
-    # On the path, not loaded from its file: the spawned plant side imports it by name.
-    if str(BENCH) not in sys.path:
-        sys.path.insert(0, str(BENCH))
-    return importlib.import_module("floors")
+    return import_bench("floors")  # the spawned plant side imports it by name
 
 
 @pytest.mark.bus

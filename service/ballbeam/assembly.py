@@ -12,11 +12,7 @@ import numpy as np
 
 from ballbeam.config import Config
 from ballbeam.core.adaptation import BallGainAdaptation, DeadZoneLearning, NoiseAdaptation
-from ballbeam.core.control import (
-    ControllerDesign,
-    ObserverLaw,
-    RestGains,
-)
+from ballbeam.core.control import ControllerDesign, ObserverLaw, RestGains
 from ballbeam.core.guard import AngleGuard, make_angle_guard, make_soft_cap
 from ballbeam.core.metrics import RunMetrics, compute_metrics
 from ballbeam.core.model import LinearModel, PhysicalConstants, as_row4

@@ -13,8 +13,6 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from ballbeam.errors import BallbeamError
 from ballbeam.runtime.exit_codes import HELP as EXIT_CODES_HELP
 from ballbeam.runtime.process import (
@@ -25,7 +23,6 @@ from ballbeam.runtime.process import (
 )
 
 EXIT_USAGE = 2
-THETA_BOUND_RESOLUTION_DEG = 1e-3
 
 
 def _positive_int(text: str) -> int:
@@ -170,8 +167,7 @@ def command_run(args: argparse.Namespace) -> int:
             summary,
         )
     end_reason = str(summary.get("end_reason"))
-    # The plant's truth is recorded at the truth frame's resolution (0.001°).
-    bound_deg = result.config.limits.theta_deg + THETA_BOUND_RESOLUTION_DEG
+    bound_deg = result.config.limits.theta_deg + result.config.controller.bound_tolerance_deg
     bound_broken = float(summary.get("max_abs_theta_deg") or 0.0) > bound_deg
     code = exit_code(end_reason, bound_broken)
     if code:
@@ -229,7 +225,7 @@ def command_recover(args: argparse.Namespace) -> int:
 
 
 def command_replay(args: argparse.Namespace) -> int:
-    from ballbeam.evaluation.summary import limit_from_log, run_series, summarise
+    from ballbeam.evaluation.summary import summarise
 
     run_log = _read_log_or_fail(args.log)
     summary = summarise(run_log)
@@ -255,32 +251,9 @@ def command_replay(args: argparse.Namespace) -> int:
             )
             exit_code = 1
     if args.plot:
-        from ballbeam.evaluation.plots import plot_run
+        from ballbeam.evaluation.plots import plot_log
 
-        series = run_series(run_log)
-        reference = np.array(
-            [
-                np.interp(
-                    series.truth_time_s,
-                    series.reference_time_s,
-                    series.reference_states[:, column],
-                    right=0.0,
-                )
-                for column in range(4)
-            ]
-        ).T
-        voltage = np.interp(series.truth_time_s, series.cycle_time_s, series.voltage_v)
-        plot_run(
-            args.plot,
-            series.truth_time_s,
-            series.truth_states,
-            reference,
-            voltage,
-            limit_from_log(run_log),
-            title=f"replay of {args.log}",
-            lateness_us=series.lateness_ns * 1e-3,
-            lateness_time_s=series.cycle_time_s,
-        )
+        plot_log(args.plot, run_log, title=f"replay of {args.log}")
     if args.report:
         from ballbeam.evaluation.report import write_report
 

@@ -148,11 +148,11 @@ class TrackerSection(_Section):
     ball_gain_ratio_min: float = Field(
         0.5, gt=0, le=1, description="ball-gain estimate: smallest ratio to the model's used"
     )
-    pace_slew_per_s: float = Field(
-        3.0, gt=0, le=1000, description="ball-gain adaptation: how fast the path's pace may change"
-    )
     ball_gain_ratio_max: float = Field(
         1.5, ge=1, le=4, description="ball-gain estimate: largest ratio to the model's used"
+    )
+    pace_slew_per_s: float = Field(
+        3.0, gt=0, le=1000, description="ball-gain adaptation: how fast the path's pace may change"
     )
 
     @model_validator(mode="after")

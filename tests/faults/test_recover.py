@@ -9,10 +9,8 @@ end before the cut), read with the official mcap reader.
 from __future__ import annotations
 
 import contextlib
-import importlib
 import io
 import random
-import sys
 from pathlib import Path
 from types import ModuleType
 
@@ -25,7 +23,7 @@ from mcap.stream_reader import StreamReader
 
 from ballbeam.logs.recover import recover_log
 
-from ..conftest import ballbeam
+from ..conftest import ballbeam, import_bench
 
 CUTS = 40
 KILLS = 4  # in the suite; bench/recover_soak.py kills 100 runs
@@ -93,15 +91,10 @@ def test_recover_refuses_to_overwrite_and_names_bad_input(
     assert not (tmp_path / "out.mcap").exists() and not list(tmp_path.glob(".*.part"))
 
 
-BENCH = Path(__file__).resolve().parents[2] / "bench"
-
-
 @pytest.fixture(scope="module")
 def soak() -> ModuleType:
     """bench/recover_soak.py: the kill this test repeats a few times, the bench 100 times."""
-    if str(BENCH) not in sys.path:
-        sys.path.insert(0, str(BENCH))
-    return importlib.import_module("recover_soak")
+    return import_bench("recover_soak")
 
 
 def test_a_run_whose_daemon_is_killed_recovers_its_log(tmp_path: Path, soak: ModuleType) -> None:

@@ -1,6 +1,7 @@
-"""What the loop learns about the plant while it runs: the ball's gain and the motor's dead zone.
+"""What the loop learns about the plant while it runs: the ball's gain (and with it the path's
+pace), the motor's dead zone and the position sensor's noise level.
 
-Both are plain float arithmetic, like the rest of the cycle (``control.py``), and their
+All are plain float arithmetic, like the rest of the cycle (``control.py``), and their
 parameters are recorded with the design, so a run replays bit for bit.
 """
 

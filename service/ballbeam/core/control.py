@@ -130,6 +130,10 @@ class ControllerDesign:
     _final_row: Row4 = field(init=False, repr=False, compare=False)
     _reference_rows: tuple[Row4, ...] = field(init=False, repr=False, compare=False)
     _reference_inputs: tuple[float, ...] = field(init=False, repr=False, compare=False)
+    # The servo's own model over one period, (a00, a01, a10, a11, b0, b1): dead-zone learning.
+    servo_rows: tuple[float, float, float, float, float, float] = field(
+        init=False, repr=False, compare=False
+    )
 
     def __post_init__(self) -> None:
         N = self.offset_v.shape[0]
@@ -152,6 +156,9 @@ class ControllerDesign:
         references = tuple(map(tuple, self.reference_states.tolist()))
         object.__setattr__(self, "_reference_rows", references)
         object.__setattr__(self, "_reference_inputs", tuple(self.reference_input_v.tolist()))
+        (a00, a01, _, _), (a10, a11, _, _) = self.observer.Ad[0], self.observer.Ad[1]
+        servo = (a00, a01, a10, a11, self.observer.Bd[0], self.observer.Bd[1])
+        object.__setattr__(self, "servo_rows", servo)
 
     @property
     def n_steps(self) -> int:
@@ -180,13 +187,19 @@ class ControllerDesign:
             a0 + f * (b0 - a0), a1 + f * (b1 - a1), a2 + f * (b2 - a2), a3 + f * (b3 - a3)
         ), u0 + f * (u1 - u0)
 
-    def tracker_input(self, position: float, estimate: Row4, pace: float = 1.0) -> float:
+    def tracker_input(
+        self,
+        position: float,
+        estimate: Row4,
+        pace: float = 1.0,
+        reference: tuple[Row4, float] | None = None,
+    ) -> float:
         """The tracker's demand [V] at path position ``position`` (unclamped); beyond the
         horizon the stationary regulator; after the plan blended with the rest gains.
 
         At a pace other than 1 the path is followed time-scaled: its rates (θ̇_d, ẋ_d) scale
         with the pace and the servo's feedforward u_d = (θ̈_d + αβ·θ̇_d)/α with them (θ̈_d with
-        the pace squared)."""
+        the pace squared). ``reference``: x_d and u_d at ``position``, if already at hand."""
         x0, x1, x2, x3 = estimate
         cycle = int(position)
         if cycle + 1 < self.n_steps:
@@ -215,7 +228,9 @@ class ControllerDesign:
         demand = offset - (k0 * x0 + k1 * x1 + k2 * x2 + k3 * x3)
         if pace == 1.0 or cycle >= self.n_steps or self.adaptation is None:
             return demand
-        (_, theta_rate, ball_rate, _), input_v = self.reference(position)
+        (_, theta_rate, ball_rate, _), input_v = (
+            reference if reference is not None else self.reference(position)
+        )
         slower = pace - 1.0
         feedforward_v = slower * (pace + 1.0) * input_v + pace * (1.0 - pace) * (
             self.adaptation.back_emf_v_s_per_rad * theta_rate
@@ -226,12 +241,6 @@ class ControllerDesign:
         if self.rest_observer is not None and cycle >= self.rest_from_cycle:
             return self.rest_observer
         return self.observer
-
-    @property
-    def servo_rows(self) -> tuple[float, float, float, float, float, float]:
-        """The servo's own model over one period: (a00, a01, a10, a11, b0, b1)."""
-        (a00, a01, _, _), (a10, a11, _, _) = self.observer.Ad[0], self.observer.Ad[1]
-        return a00, a01, a10, a11, self.observer.Bd[0], self.observer.Bd[1]
 
     def deadzone_at(self, state: ControllerState) -> float:
         """The dead zone the cycle compensates: the learnt one, else the design's."""
@@ -269,7 +278,6 @@ class ControllerState:
     # started; then the design's expectation) and the last two positions measured in a row.
     noise_mean_square: float | None = None
     last_positions: tuple[float, ...] = ()
-
 
 
 @dataclass(frozen=True)
@@ -336,29 +344,27 @@ def control_cycle(
 ) -> tuple[ControllerState, CycleOutput]:
     """One control period. ``reading`` is None when no valid sensor frame arrived in time."""
     deadzone_v = design.deadzone_at(state)
+    measurement = design.measurement(reading) if reading is not None else None
     if state.prediction is None:
-        if reading is None:
+        if measurement is None:
             raise ValueError("the first control cycle needs a sensor reading")
-        estimate = initial_estimate(
-            design.observer, design.measurement(reading), design.initial_state
-        )
-    elif reading is None:
+        estimate = initial_estimate(design.observer, measurement, design.initial_state)
+    elif measurement is None:
         estimate = state.prediction  # coast on the model
     else:
-        measurement = design.measurement(reading)
         observer = design.observer_at(int(state.path_position))
         noise = design.noise_adaptation
-        if noise is None:
-            estimate = correct(observer, state.prediction, measurement)
-        else:
+        gain = None
+        if noise is not None:
             mean_square = (
                 noise.expected_square if state.noise_mean_square is None
                 else state.noise_mean_square
             )
-            gain = noise.gain(
-                noise.level(mean_square), int(state.path_position) >= design.rest_from_cycle
-            )
-            estimate = correct(observer, state.prediction, measurement, gain)
+            gain = noise.gain(noise.level(mean_square), observer is design.rest_observer)
+        estimate = correct(observer, state.prediction, measurement, gain)
+    # The measured angle and position in SI units (each output reads one state).
+    (c_theta, _, _, _), (_, _, _, c_position) = design.observer.C
+    theta_measured_rad = measurement[0] / c_theta if measurement is not None else estimate[0]
     position = state.path_position
     reference, reference_input_v = design.reference(position)
     fit, ratio = state.fit, state.ball_gain_ratio
@@ -366,15 +372,14 @@ def control_cycle(
     pace = 1.0
     if adaptation is not None:
         if position < adaptation.until_cycle:
-            theta_rad = estimate[0]
-            if reading is not None:
-                angle_y, position_y = design.measurement(reading)
-                theta_rad = angle_y / design.observer.C[0][0]
-                fit = adaptation.add_sample(fit, position_y / design.observer.C[1][3])
+            if measurement is not None:
+                fit = adaptation.add_sample(fit, measurement[1] / c_position)
                 ratio = adaptation.ratio(fit)
-            fit = adaptation.advance(fit, theta_rad)
+            fit = adaptation.advance(fit, theta_measured_rad)
         pace = adaptation.pace(ratio, state.pace)
-    requested_v = design.tracker_input(position, estimate, pace)
+    requested_v = design.tracker_input(
+        position, estimate, pace, (reference, reference_input_v)
+    )
     if design.guard is not None:
         capped_v = guarded_voltage(design.guard, estimate, requested_v)
     else:
@@ -385,18 +390,17 @@ def control_cycle(
     window = state.deadzone_window
     learning = design.deadzone_learning
     if learning is not None:
-        if reading is None:
+        if measurement is None:
             window = None  # a window needs the angle measured at both ends
         else:
             deadzone_v, window = learning.step(
-                deadzone_v, window, voltage_v, drive_v,
-                design.measurement(reading)[0] / design.observer.C[0][0], estimate[1],
+                deadzone_v, window, voltage_v, drive_v, theta_measured_rad, estimate[1],
                 design.servo_rows,
             )
             drive_v = design.modelled_drive_v(voltage_v, deadzone_v)
     # Rest and tracking observers share Ad, Bd: predicting with either is the same.
     prediction = predict(design.observer, estimate, drive_v, ratio)
-    noise_mean_square, last_positions = _measure_noise(design, state, reading)
+    noise_mean_square, last_positions = _measure_noise(design, state, measurement)
     return (
         ControllerState(
             cycle=state.cycle + 1, prediction=prediction, path_position=position + pace,
@@ -411,14 +415,14 @@ def control_cycle(
 
 
 def _measure_noise(
-    design: ControllerDesign, state: ControllerState, reading: SensorReading | None
+    design: ControllerDesign, state: ControllerState, measurement: Row2 | None
 ) -> tuple[float | None, tuple[float, ...]]:
     """The noise measurement after this cycle: a second difference needs three positions
     measured in consecutive cycles (a missed one restarts the chain)."""
     noise = design.noise_adaptation
-    if noise is None or reading is None:
+    if noise is None or measurement is None:
         return state.noise_mean_square, ()
-    position_y = design.measurement(reading)[1]
+    position_y = measurement[1]
     mean_square = state.noise_mean_square
     if len(state.last_positions) == 2:
         older, last = state.last_positions
@@ -445,7 +449,9 @@ def coast_cycles(
         cycle=state.cycle + count, prediction=prediction,
         path_position=state.path_position + count * state.pace, fit=fit,
         ball_gain_ratio=state.ball_gain_ratio, pace=state.pace, deadzone_v=state.deadzone_v,
-        noise_mean_square=state.noise_mean_square,  # the chain of positions restarts
+        # Skipped periods measured nothing: the noise's chain of positions and the dead-zone
+        # window (which needs the angle at both ends) start again.
+        noise_mean_square=state.noise_mean_square,
     )
 
 

@@ -10,6 +10,8 @@ from typing import IO
 import numpy as np
 
 from ballbeam.errors import BallbeamError
+from ballbeam.evaluation.summary import limit_from_log, run_series
+from ballbeam.logs.reader import RunLog
 
 
 def plot_run(
@@ -61,3 +63,35 @@ def plot_run(
         raise BallbeamError(f"cannot write plot {path}: {error}") from error
     finally:
         plt.close(figure)
+
+
+def plot_log(
+    path: str | Path | IO[bytes], run_log: RunLog, title: str, file_format: str | None = None
+) -> None:
+    """The figure of a recorded run: truth against the reference (both on the truth samples'
+    times; the reference is rest beyond the plan), the command, the loop's lateness."""
+    series = run_series(run_log)
+    reference = np.array(
+        [
+            np.interp(
+                series.truth_time_s,
+                series.reference_time_s,
+                series.reference_states[:, column],
+                right=0.0,
+            )
+            for column in range(4)
+        ]
+    ).T
+    voltage = np.interp(series.truth_time_s, series.cycle_time_s, series.voltage_v)
+    plot_run(
+        path,
+        series.truth_time_s,
+        series.truth_states,
+        reference,
+        voltage,
+        limit_from_log(run_log),
+        title=title,
+        lateness_us=series.lateness_ns * 1e-3,
+        lateness_time_s=series.cycle_time_s,
+        file_format=file_format,
+    )

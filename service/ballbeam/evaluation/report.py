@@ -20,8 +20,8 @@ from typing import Any
 import numpy as np
 
 from ballbeam.errors import BallbeamError
-from ballbeam.evaluation.plots import plot_run
-from ballbeam.evaluation.summary import limit_from_log, run_series
+from ballbeam.evaluation.plots import plot_log
+from ballbeam.evaluation.summary import run_series
 from ballbeam.logs.reader import RunLog
 
 HEADLINE = (
@@ -97,27 +97,14 @@ def _shown(value: Any) -> str:
 
 
 def _figures(run_log: RunLog) -> str:
-    series = run_series(run_log)
-    reference = np.array(
-        [
-            np.interp(series.truth_time_s, series.reference_time_s,
-                      series.reference_states[:, column], right=0.0)
-            for column in range(4)
-        ]
-    ).T
-    voltage = np.interp(series.truth_time_s, series.cycle_time_s, series.voltage_v)
     paper_style = io.BytesIO()
-    plot_run(
-        paper_style, series.truth_time_s, series.truth_states, reference, voltage,
-        limit_from_log(run_log), title="the run against its reference",
-        lateness_us=series.lateness_ns * 1e-3, lateness_time_s=series.cycle_time_s,
-        file_format="svg",
-    )
+    plot_log(paper_style, run_log, title="the run against its reference", file_format="svg")
+    lateness_us = run_series(run_log).lateness_ns * 1e-3
     return (
         '<figure id="figure-run">' + _inline_svg(paper_style)
         + "<figcaption>Ball position x and its reference x_d; servo angle θ, θ_d and the "
         "limits; the command u; the loop's lateness.</figcaption></figure>"
-        + '<figure id="figure-lateness">' + _lateness_histogram(series.lateness_ns * 1e-3)
+        + '<figure id="figure-lateness">' + _lateness_histogram(lateness_us)
         + "<figcaption>How late each control cycle started (µs after its deadline)."
         "</figcaption></figure>"
     )

@@ -5,7 +5,8 @@ code   meaning
 =====  ==========================================================================================
 0      the run completed (or was stopped on request, SIGINT/SIGTERM) within its safety bound
 1      the run did not complete for another reason, or (``ballbeam run``, which reads the plant's
-       truth) the servo angle went beyond ``limits.theta_deg``
+       truth) the servo angle went beyond ``limits.theta_deg`` by more than
+       ``controller.bound_tolerance_deg``
 2      usage or bad input (config, log path, bus), the run could not be recorded, or its daemon
        died (``ballbeam run``: the log is then made whole and named)
 3      the plant was lost: no sensor frames for ``controller.plant_lost_s`` (the run is

@@ -7,6 +7,7 @@ daemon exits; the emulator is then stopped with SIGTERM.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -137,11 +138,11 @@ def launch_run(
     emulator_exit = _stop(emulator)
     _, emulator_errors = emulator.communicate()
     if daemon.returncode not in RECORDED_RUN_CODES:
-        how = (
-            f"was killed by {signal.Signals(-daemon.returncode).name}"
-            if daemon.returncode < 0
-            else f"exited with {daemon.returncode}"
-        )
+        how = f"exited with {daemon.returncode}"
+        if daemon.returncode < 0:
+            how = f"was killed by signal {-daemon.returncode}"
+            with contextlib.suppress(ValueError):
+                how = f"was killed by {signal.Signals(-daemon.returncode).name}"
         raise RunFailedError(
             f"the daemon {how}{_recover_cut_log(log_path)}:\n{_tail(daemon_errors)}"
             + (f"\nemulator said:\n{_tail(emulator_errors)}" if emulator_errors.strip() else "")
