@@ -213,6 +213,10 @@ def _ball_gain_adaptation(
         until_cycle=until_cycle,
         back_emf_v_s_per_rad=float(-model.A[1, 1] / model.B[1, 0]),
         pace_step_per_cycle=tracker_cfg.pace_slew_per_s * config.controller.period_s,
+        resync_rate_per_cycle=tracker_cfg.clock_resync_per_s * config.controller.period_s,
+        resync_max_per_cycle=tracker_cfg.clock_resync_max,
+        # A limit arc: the plan holds θ_d within a degree of its own limit.
+        arc_theta_rad=config.limits.theta_rad - math.radians(config.plan.theta_margin_deg + 1.0),
     )
 
 

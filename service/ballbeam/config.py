@@ -129,7 +129,8 @@ class TrackerSection(_Section):
         0.05, ge=0, le=10, description="after the plan: gains blend to the rest regulator's"
     )
     far_q: tuple[float, ...] | None = Field(
-        None, description="after the plan, Q of the gains far from rest (None: the tracking q)"
+        (10.0, 0.0, 0.0, 50000.0),
+        description="after the plan, Q of the gains far from rest (None: the tracking q)",
     )
     far_r: float = Field(0.01, gt=0, description="after the plan, R of the gains far from rest")
     rest_theta_near_deg: float = Field(0.5, ge=0, description="rest gains alone within |θ| <")
@@ -150,6 +151,14 @@ class TrackerSection(_Section):
     )
     ball_gain_ratio_max: float = Field(
         1.5, ge=1, le=4, description="ball-gain estimate: largest ratio to the model's used"
+    )
+    clock_resync_per_s: float = Field(
+        20.0, ge=0, le=1000, description="ball-gain adaptation: on the path's accelerating limit "
+        "arcs, the rate [1/s] at which the path's clock takes up the ball's measured lag (0: off)"
+    )
+    clock_resync_max: float = Field(
+        0.2, ge=0, le=1, description="clock re-synchronisation: the largest change of the "
+        "path's clock rate it makes"
     )
     pace_slew_per_s: float = Field(
         3.0, gt=0, le=1000, description="ball-gain adaptation: how fast the path's pace may change"

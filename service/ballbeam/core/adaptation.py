@@ -10,8 +10,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from ballbeam.core.model import Row4
+
 FitSums = tuple[float, ...]  # see BallGainAdaptation.add_sample, .advance
 EMPTY_FIT: FitSums = (0.0,) * 12
+MIN_RESYNC_SPEED_M_S = 0.01  # below this a position error says little about a delay
 
 
 @dataclass(frozen=True)
@@ -43,6 +46,38 @@ class BallGainAdaptation:
     until_cycle: int  # the plan's end (path cycles)
     back_emf_v_s_per_rad: float  # β of the servo model (θ̈ = α·u − αβ·θ̇): the pace's feedforward
     pace_step_per_cycle: float  # how fast the pace may change (a jump of pace is a step of u)
+    # Clock re-synchronisation on the path's accelerating limit arcs (see clock_shift_cycles).
+    resync_rate_per_cycle: float = 0.0  # fraction of the measured lag taken up each cycle (0: off)
+    resync_max_per_cycle: float = 0.0  # largest shift of the clock in one cycle [path cycles]
+    arc_theta_rad: float = 0.0  # |θ_d| beyond this, with θ̇_d still, is a limit arc
+
+    def clock_shift_cycles(
+        self, estimate: Row4, reference: Row4, next_velocity_m_s: float, pace: float
+    ) -> float:
+        """How far to move the path's clock this cycle, besides the pace [path cycles].
+
+        Until the estimate is confident the path runs at the model's pace, and a slower ball
+        falls behind it (ball gain 0.8: ~25 ms by the first arc); the pace alone keeps that lag
+        to the end, and the ball overshoots. On an arc the angle is held at the limit, so the
+        tracker cannot win the time back, but the clock can: θ_d is constant there, so moving
+        τ moves only the ball's reference, not the servo's. A ball behind by δ seconds sits
+        where the reference was δ ago, x̂ ≈ X − V·δ (X, V the reference played at the pace),
+        so δ = −(x̂ − X)/V. Only on accelerating arcs (V·A > 0): on a decelerating one an error
+        is mostly surplus speed, not a delay, and moving the clock would hide it.
+        """
+        if self.resync_rate_per_cycle == 0.0:
+            return 0.0
+        theta_d, theta_rate_d, velocity_d, position_d = reference
+        if abs(theta_rate_d) > 1e-3 or abs(theta_d) < self.arc_theta_rad:
+            return 0.0
+        velocity = pace * velocity_d
+        acceleration = pace * pace * (next_velocity_m_s - velocity_d) / self.period_s
+        if velocity * acceleration <= 0.0 or abs(velocity) < MIN_RESYNC_SPEED_M_S:
+            return 0.0
+        lag_s = -(estimate[3] - position_d) / velocity
+        shift = self.resync_rate_per_cycle * lag_s * pace / self.period_s
+        limit = self.resync_max_per_cycle
+        return -min(max(shift, -limit), limit)
 
     def pace(self, ratio: float, previous_pace: float) -> float:
         """√ratio, approached from the previous cycle's pace by at most one pace step."""

@@ -370,6 +370,7 @@ def control_cycle(
     fit, ratio = state.fit, state.ball_gain_ratio
     adaptation = design.adaptation
     pace = 1.0
+    resync = 0.0  # path cycles the clock moves besides the pace (re-synchronisation)
     if adaptation is not None:
         if position < adaptation.until_cycle:
             if measurement is not None:
@@ -377,6 +378,11 @@ def control_cycle(
                 ratio = adaptation.ratio(fit)
             fit = adaptation.advance(fit, theta_measured_rad)
         pace = adaptation.pace(ratio, state.pace)
+        if ratio != 1.0 and position < adaptation.until_cycle:
+            next_velocity = design.reference(position + 1.0)[0][2]
+            resync = adaptation.clock_shift_cycles(
+                estimate, reference, next_velocity, pace
+            )
     requested_v = design.tracker_input(
         position, estimate, pace, (reference, reference_input_v)
     )
@@ -403,7 +409,7 @@ def control_cycle(
     noise_mean_square, last_positions = _measure_noise(design, state, measurement)
     return (
         ControllerState(
-            cycle=state.cycle + 1, prediction=prediction, path_position=position + pace,
+            cycle=state.cycle + 1, prediction=prediction, path_position=position + pace + resync,
             fit=fit, ball_gain_ratio=ratio, pace=pace, deadzone_v=deadzone_v,
             deadzone_window=window, noise_mean_square=noise_mean_square,
             last_positions=last_positions,

@@ -38,7 +38,9 @@ guard_*                              present when the angle guard is on: theta_l
 adapt_*                              present with the ball-gain adaptation: design_gamma,
                                      position_noise_m, confidence, min_ratio, max_ratio,
                                      period_s, until_cycle, back_emf_v_s_per_rad,
-                                     pace_step_per_cycle (scalars)
+                                     pace_step_per_cycle, resync_rate_per_cycle,
+                                     resync_max_per_cycle, arc_theta_rad (scalars; the
+                                     last three absent in older logs: no re-sync)
 noise_levels, noise_tracking_L   present with noise adaptation: levels (K,), gains (K, 4, 2),
 noise_rest_L, noise_expected_square, noise_smoothing_per_cycle: rest gains (K, 4, 2)
                                      (optional), scalars
@@ -79,6 +81,9 @@ _SOFT_SCALARS = ("theta_limit_rad", "zone_gain_per_s", "rate_gain_per_s", "alpha
                  "alpha_beta", "gap_step_rad")
 _ADAPT_SCALARS = ("design_gamma", "position_noise_m", "confidence", "min_ratio", "max_ratio",
                   "period_s", "back_emf_v_s_per_rad", "pace_step_per_cycle")
+# Added later: a log recorded before them ran without clock re-synchronisation.
+_ADAPT_OPTIONAL = {"resync_rate_per_cycle": 0.0, "resync_max_per_cycle": 0.0,
+                   "arc_theta_rad": 0.0}
 _LEARN_SCALARS = ("min_motion_rad", "judge_motion_rad", "rate", "below_v", "max_v")
 _GUARD_SCALARS = ("theta_limit_rad", "voltage_limit_v", "theta_per_v", "rate_per_v",
                   "rate_step_rad_s", "beyond_slope_s")
@@ -112,7 +117,10 @@ def encode_design(design: ControllerDesign) -> bytes:
             arrays["rest_far_gain"] = _f8(rest.far_gain)
     adaptation = design.adaptation
     if adaptation is not None:
-        arrays.update({f"adapt_{name}": _f8(getattr(adaptation, name)) for name in _ADAPT_SCALARS})
+        arrays.update({
+            f"adapt_{name}": _f8(getattr(adaptation, name))
+            for name in (*_ADAPT_SCALARS, *_ADAPT_OPTIONAL)
+        })
         arrays["adapt_until_cycle"] = _f8(adaptation.until_cycle)
     noise = design.noise_adaptation
     if noise is not None:
@@ -188,6 +196,11 @@ def decode_design(data: bytes, where: str) -> ControllerDesign:
         if "adapt_design_gamma" in arrays:
             adaptation = BallGainAdaptation(
                 **{name: _scalar(arrays[f"adapt_{name}"]) for name in _ADAPT_SCALARS},
+                **{
+                    name: _scalar(arrays[f"adapt_{name}"]) if f"adapt_{name}" in arrays
+                    else default
+                    for name, default in _ADAPT_OPTIONAL.items()
+                },
                 until_cycle=_count(arrays["adapt_until_cycle"]),
             )
         noise = None
