@@ -14,7 +14,7 @@ import pytest
 from ballbeam.assembly import run_offline
 from ballbeam.config import Config, load_config
 from ballbeam.evaluation import replay
-from ballbeam.evaluation.summary import summarise
+from ballbeam.evaluation.summary import plant_missed_periods, summarise
 from ballbeam.logs.reader import read_log
 from ballbeam.logs.recorder import Recorder
 from ballbeam.logs.recording import RunRecording
@@ -30,6 +30,7 @@ from ballbeam.runtime.daemon.command_out import CommandOut
 from ballbeam.runtime.daemon.intake import SensorIntake, SentCommands
 from ballbeam.runtime.daemon.node import run_daemon
 from ballbeam.runtime.stop import StopFlag
+from ballbeam.runtime.ticker import Tick
 from ballbeam_emulator.node import PlantEmulator
 
 CONTRACT = FrameContract.load()
@@ -168,3 +169,68 @@ def test_after_a_watchdog_trip_the_plant_obeys_a_restarted_daemon_at_once() -> N
     finally:
         emulator.stop()
         bus.shutdown()
+
+
+class SkippingTicker:
+    """A ticker whose deadlines are given: the periods the emulator 'overran' are skipped
+    (what Ticker.wait reports after an overrun), and it stops the run after the last."""
+
+    def __init__(self, cycles: list[int], period_ns: int, stop: StopFlag) -> None:
+        self.origin_ns, self.spin_ns, self.period_ns = 0, 0, period_ns
+        self._cycles, self._stop, self._last = iter(cycles), stop, -1
+
+    def wait(self) -> Tick:
+        cycle = next(self._cycles, None)
+        if cycle is None:
+            self._stop.set()
+            cycle = self._last + 1
+        skipped, self._last = cycle - self._last - 1, cycle
+        deadline_ns = cycle * self.period_ns
+        return Tick(cycle=cycle, deadline_ns=deadline_ns, start_ns=deadline_ns, skipped=skipped)
+
+
+def test_the_plants_counters_count_the_periods_it_missed(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """An emulator that overran periods 2–4 sends no sample for them, and its next sample's
+    counter is 5: the gap is visible to every receiver (before, the counter was per frame)."""
+    config = virtual_config(1.0, "run.mode='realtime'")
+    stop = StopFlag()
+    period_ns = 1_000_000_000 // config.plant.sensor_rate_hz
+    monkeypatch.setattr(
+        "ballbeam_emulator.node.Ticker",
+        lambda *_args, **_kwargs: SkippingTicker([0, 1, 5, 6], period_ns, stop),
+    )
+    plant_bus = can.Bus(interface="virtual", channel=config.bus.channel)
+    listener = can.Bus(interface="virtual", channel=config.bus.channel)
+    emulator = PlantEmulator(config, plant_bus, CONTRACT)
+    try:
+        emulator.run_realtime(stop)
+        counters = []
+        while (received := listener.recv(timeout=0.05)) is not None:
+            if received.arbitration_id == SENSOR_ID:
+                frame = CONTRACT.decode(received.arbitration_id, bytes(received.data))
+                counters.append(frame.counter)
+    finally:
+        emulator.stop()
+        plant_bus.shutdown()
+        listener.shutdown()
+    assert counters == [0, 1, 5, 6]
+    assert emulator.counters.missed_periods == 3
+
+
+def test_truth_carries_the_plants_own_sample_clock(tmp_path: Path) -> None:
+    """The recorder's /truth has the plant's period index (its counter unwrapped) and time;
+    replay counts the periods with no truth between the first and the last."""
+    path = tmp_path / "truth.mcap"
+    recorder = Recorder(path, metadata={})
+    intake = SensorIntake(CONTRACT, RunRecording(recorder), sample_period_s=1e-3)
+    for counter in (254, 255, 0, 3, 4):  # periods 257 and 258 missed
+        intake.handle(framed(TruthAngle(counter, 0.1, 0.0)), 0, 0)
+        intake.handle(framed(TruthBall(counter, 0.05, 0.0)), 0, 0)
+    recorder.close()
+    run_log = read_log(path)
+    truth = run_log.topics["/truth"]
+    assert list(truth.values["sample_index"]) == [254, 255, 256, 259, 260]
+    assert list(truth.values["plant_time_s"]) == pytest.approx([0.254, 0.255, 0.256, 0.259, 0.26])
+    assert plant_missed_periods(run_log) == 2

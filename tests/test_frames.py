@@ -25,6 +25,7 @@ from ballbeam.protocol.frames import (
     TRUTH_BALL_ID,
     VOLTAGE_COMMAND_ID,
     CounterCheck,
+    CounterUnwrap,
     Frame,
     FrameContract,
     FrameRejectedError,
@@ -631,3 +632,13 @@ def test_raw_signal_reads_many_recorded_frames_as_decode_reads_one() -> None:
     ]
     with pytest.raises(FrameError, match="no signal"):
         contract.raw_signal(SENSOR_ID, "Nonexistent", data)
+
+
+def test_counter_unwrap_follows_wraps_gaps_and_old_frames() -> None:
+    """Counters count the plant's sample periods: unwrapped, a wrap is +1, a gap shows as a
+    larger step, an old frame gets the index it had."""
+    unwrap = CounterUnwrap()
+    heard = [250, 251, 255, 0, 1, 3, 2, 130]
+    assert [unwrap.index(counter) for counter in heard] == [
+        250, 251, 255, 256, 257, 259, 258, 386
+    ]

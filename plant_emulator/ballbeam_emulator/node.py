@@ -49,6 +49,8 @@ class EmulatorCounters:
     own_or_foreign: int = 0
     dropped_by_injection: int = 0
     watchdog_trips: int = 0
+    missed_periods: int = 0  # sample periods the emulator overran (real time): counter gaps
+    peer_lost: int = 0  # times the launcher's link said the daemon died (voltage zeroed)
 
 
 class PlantEmulator:
@@ -206,6 +208,12 @@ class PlantEmulator:
             due = (tick.deadline_ns - physics_ns) // self.substep_ns
             self._advance(due)
             physics_ns += due * self.substep_ns
+            # The counter counts sample periods, not frames: periods this process overran
+            # (never sampled, never sent) are a visible gap to every receiver.
+            for _ in range(tick.skipped):
+                self.noise_m = next_noise(self.physics.params, self.noise_m, self.rng)
+                self.counter = next_counter(self.counter)
+            self.counters.missed_periods += tick.skipped
             self.noise_m = next_noise(self.physics.params, self.noise_m, self.rng)
             self._send_sample()
             self.counter = next_counter(self.counter)

@@ -24,6 +24,7 @@ BENCH_FIGURES = (
     "lateness_max_us",
     "overruns",
     "frames_lost",
+    "plant_missed_periods",
     "frames_rejected",
     "coasted_cycles",
     "recorder_dropped",

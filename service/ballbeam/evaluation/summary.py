@@ -15,7 +15,7 @@ import numpy as np
 from ballbeam.core.metrics import compute_metrics
 from ballbeam.errors import LogFormatError
 from ballbeam.logs.reader import RunLog
-from ballbeam.logs.topics import STRUCT_TOPICS
+from ballbeam.logs.topics import LEGACY_STRUCT_TOPICS, STRUCT_TOPICS
 from ballbeam.protocol.frames import SENSOR_ID, VOLTAGE_COMMAND_ID, FrameContract
 
 REQUIRED_TOPICS = ("/command", "/reference", "/truth", "/timing")
@@ -42,7 +42,8 @@ def check_layouts(run_log: RunLog, topics: Iterable[str]) -> None:
     """LogFormatError unless each of ``topics`` that the log has is in the ballbeam layout."""
     for topic in topics:
         found = run_log.topics.get(topic)
-        if found is not None and found.schema.fields != STRUCT_TOPICS[topic].fields:
+        accepted = (STRUCT_TOPICS[topic], *LEGACY_STRUCT_TOPICS.get(topic, ()))
+        if found is not None and all(found.schema.fields != known.fields for known in accepted):
             raise LogFormatError(
                 f"{run_log.path}: topic {topic!r} has layout {found.schema.name!r} "
                 f"({', '.join(found.schema.field_names)}), not ballbeam's "
@@ -109,6 +110,17 @@ def sensor_to_command_latency_s(run_log: RunLog) -> np.ndarray:
     return np.concatenate(latencies) if latencies else np.empty(0)
 
 
+def plant_missed_periods(run_log: RunLog) -> int | None:
+    """Sample periods with no truth recorded between the first and the last: the plant
+    overran them (its counters count periods) or their truth frames were lost. None for a log
+    recorded before the plant's clock was in /truth."""
+    truth = run_log.topics["/truth"]
+    if "sample_index" not in truth.schema.field_names:
+        return None
+    steps = np.diff(np.asarray(truth.values["sample_index"], dtype=np.int64))
+    return int(np.sum(np.maximum(steps - 1, 0)))
+
+
 def summarise(run_log: RunLog, theta_limit_rad: float | None = None) -> dict[str, Any]:
     """One flat dict: the core metrics plus timing, frames, faults and truncation."""
     series = run_series(run_log)
@@ -162,6 +174,7 @@ def summarise(run_log: RunLog, theta_limit_rad: float | None = None) -> dict[str
         "frames_rejected": counter("rejected_total"),
         "coasted_cycles": counter("coasted_cycles"),
         "recorder_dropped": counter("recorder_dropped"),
+        "plant_missed_periods": plant_missed_periods(run_log),
         "faults": fault_kinds,
         "end_reason": summary_meta.get("end_reason", "unknown (no summary: run cut short)"),
         "truncated": run_log.truncated,

@@ -69,6 +69,20 @@ class TruthRecord(NamedTuple):
     theta_rate_rad_s: Float64
     ball_velocity_m_s: Float64
     ball_position_m: Float64
+    # The plant's own clock: its sample-period index (the frame counter unwrapped; counters
+    # count periods, so a period the plant missed is a step of 2) and that index's time.
+    sample_index: Int64
+    plant_time_s: Float64
+
+
+class TruthRecordV1(NamedTuple):
+    """/truth as logs recorded before the plant's clock was in it (still read)."""
+
+    counter: UInt8
+    theta_rad: Float64
+    theta_rate_rad_s: Float64
+    ball_velocity_m_s: Float64
+    ball_position_m: Float64
 
 
 class TimingRecord(NamedTuple):
@@ -129,3 +143,7 @@ STRUCT_TOPICS: dict[str, StructSchema] = {
     for topic in (CAN_RX, CAN_TX, SENSOR, COMMAND, ESTIMATE, REFERENCE, TRUTH, TIMING)
 }
 JSON_TOPICS = (FAULTS, EVENTS)
+# Earlier layouts a reader still accepts, per topic.
+LEGACY_STRUCT_TOPICS: dict[str, tuple[StructSchema, ...]] = {
+    TRUTH.name: (schema_of("ballbeam/PlantTruth", TruthRecordV1),),
+}

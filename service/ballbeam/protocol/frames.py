@@ -472,3 +472,26 @@ class CounterCheck:
     def reset(self) -> None:
         """Forget the last counter (keep the counts): the next frame is accepted as the first."""
         self.last = None
+
+
+class CounterUnwrap:
+    """A rolling 8-bit counter unwrapped into an ever-growing index (the plant's sample-period
+    index from its frames' counters). The first counter heard is taken as its own index (a
+    plant heard from its start reads from 0); each next one moves the index on by the forward
+    distance (counter − last) mod 256 when that is below 128, else it is an older frame and
+    gets the index it had. Gaps of 128 periods or more cannot be told from old frames."""
+
+    __slots__ = ("last",)
+
+    def __init__(self) -> None:
+        self.last: int | None = None  # the index of the newest counter heard
+
+    def index(self, counter: int) -> int:
+        if self.last is None:
+            self.last = counter
+            return counter
+        delta = (counter - self.last) % COUNTER_MODULUS
+        if delta >= COUNTER_MODULUS // 2:
+            return self.last - (COUNTER_MODULUS - delta)
+        self.last += delta
+        return self.last

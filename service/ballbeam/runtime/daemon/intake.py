@@ -19,6 +19,7 @@ from ballbeam.logs.topics import CAN_RX, TRUTH, CanFrameRecord, TruthRecord
 from ballbeam.protocol.frames import (
     VOLTAGE_COMMAND_ID,
     CounterCheck,
+    CounterUnwrap,
     CounterVerdict,
     FrameContract,
     FrameRejectedError,
@@ -59,7 +60,11 @@ class SentCommands:
 
 class SensorIntake:
     def __init__(
-        self, contract: FrameContract, recording: RunRecording, sent: SentCommands | None = None
+        self,
+        contract: FrameContract,
+        recording: RunRecording,
+        sent: SentCommands | None = None,
+        sample_period_s: float = 1e-3,
     ) -> None:
         self.contract = contract
         self.recording = recording
@@ -70,6 +75,9 @@ class SensorIntake:
         self.own_frames = 0
         self.rejected: Counter[str] = Counter()
         self._truth_angle: TruthAngle | None = None
+        # The plant's clock: its truth counters (one per sample period) unwrapped.
+        self.plant_clock = CounterUnwrap()
+        self.sample_period_s = sample_period_s
         # (counter, log time) of the latest accepted sample: its truth is logged at that time.
         self._last_sample_log: tuple[int, int] | None = None
 
@@ -134,9 +142,11 @@ class SensorIntake:
                 # that sample's sensor frame never came: counters wrap, so no older match).
                 sample = self._last_sample_log
                 at_ns = sample[1] if sample and sample[0] == frame.counter else log_time_ns
+                sample_index = self.plant_clock.index(frame.counter)
                 self.recording.write(TRUTH, at_ns, TruthRecord(
                     frame.counter, angle.theta_rad, angle.theta_rate_rad_s,
                     frame.velocity_m_s, frame.position_m,
+                    sample_index, sample_index * self.sample_period_s,
                 ))
                 self._truth_angle = None
         else:

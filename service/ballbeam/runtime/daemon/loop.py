@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 import can
 import numpy as np
 
+from ballbeam.assembly import sensor_periods_per_cycle
 from ballbeam.config import Config
 from ballbeam.core.control import (
     ControllerDesign,
@@ -96,7 +97,12 @@ class ControllerDaemon:
         self.recording = recording
         self.stop = stop
         sent = SentCommands()  # what the daemon sent: its echoes are not someone else's
-        self.intake = SensorIntake(contract, recording, sent)
+        # One plant sample per counter step: a sensor period in real time, a control period's
+        # worth of them per lock-step exchange.
+        sample_period_s = 1.0 / config.plant.sensor_rate_hz * (
+            sensor_periods_per_cycle(config) if config.run.mode == "lockstep" else 1
+        )
+        self.intake = SensorIntake(contract, recording, sent, sample_period_s)
         self.commands = CommandOut(bus, contract, recording, sent)
         self.period_ns = config.controller.period_ns
         self.n_cycles = round(config.run.duration_s * config.controller.rate_hz)
