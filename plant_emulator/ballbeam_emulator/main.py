@@ -13,6 +13,7 @@ from ballbeam.config import Config
 from ballbeam.errors import BallbeamError
 from ballbeam.protocol.frames import FrameContract
 from ballbeam.runtime.bus import open_bus
+from ballbeam.runtime.peer_link import PeerLink
 from ballbeam.runtime.process import (
     add_config_arguments,
     apply_scheduling,
@@ -33,8 +34,9 @@ def run_emulator(config: Config) -> None:
     stop = StopFlag().install()
     if config.run.mode == "realtime":  # lock-step has no deadlines to protect
         apply_scheduling(config.plant.cpu, config.plant.realtime_priority)
+    peer_link = PeerLink.from_environment()
     bus = open_bus(config.bus)
-    emulator = PlantEmulator(config, bus, contract)
+    emulator = PlantEmulator(config, bus, contract, peer_link)
     settle_heap()
     try:
         if config.run.mode == "lockstep":

@@ -33,6 +33,7 @@ from ballbeam.protocol.frames import (
     next_counter,
 )
 from ballbeam.runtime.bus import recv_frame
+from ballbeam.runtime.peer_link import PeerLink
 from ballbeam.runtime.stop import StopFlag
 from ballbeam.runtime.ticker import Ticker
 
@@ -54,8 +55,15 @@ class EmulatorCounters:
 
 
 class PlantEmulator:
-    def __init__(self, config: Config, bus: can.BusABC, contract: FrameContract) -> None:
+    def __init__(
+        self,
+        config: Config,
+        bus: can.BusABC,
+        contract: FrameContract,
+        peer_link: PeerLink | None = None,
+    ) -> None:
         self.config = config
+        self.peer_link = peer_link
         self.bus = bus
         self.contract = contract
         params = plant_parameters(config)
@@ -159,6 +167,19 @@ class PlantEmulator:
             log.warning("watchdog: no valid command for %.1f ms, voltage zeroed",
                         (now_ns - self.last_command_ns) / 1e6)
 
+    def _check_peer(self) -> None:
+        """The launcher's link says the daemon died: no drive from this moment on (the
+        sample's status shows it, as after a watchdog trip)."""
+        # Once: a command heard since (a restarted daemon, by hand) is obeyed as usual.
+        if self.peer_link is None or self.counters.peer_lost or not self.peer_link.peer_gone():
+            return
+        self.voltage_v = 0.0
+        self.watchdog_zeroed = True
+        self.counters.peer_lost += 1
+        self.command_check.reset()
+        log.warning("peer link closed: the daemon is gone; voltage zeroed at monotonic %d ns",
+                    time.monotonic_ns())
+
     def _advance(self, substeps: int) -> None:
         if self.started and substeps > 0:
             self.state = self.physics.advance(self.state, self.voltage_v, substeps)
@@ -172,6 +193,7 @@ class PlantEmulator:
         while not stop.is_set():
             message = self._recv(resend_s, poll_s)
             now_ns = time.monotonic_ns()
+            self._check_peer()
             self._check_watchdog(now_ns)
             if message is None or (command := self._accept_command(message)) is None:
                 if time.monotonic() - last_sent >= resend_s:
@@ -204,6 +226,7 @@ class PlantEmulator:
         physics_ns = ticker.origin_ns
         tick = ticker.wait()
         while not stop.is_set():
+            self._check_peer()
             # Advance to the deadline, then sample: the sensor reads the state at t_k.
             due = (tick.deadline_ns - physics_ns) // self.substep_ns
             self._advance(due)

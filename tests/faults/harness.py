@@ -7,6 +7,7 @@ See the package docstring (:mod:`tests.faults`) for how the tests use it.
 from __future__ import annotations
 
 import math
+import os
 import re
 import secrets
 import signal
@@ -28,6 +29,7 @@ from ballbeam.evaluation.summary import summarise
 from ballbeam.logs.reader import RunLog, read_log
 from ballbeam.protocol.frames import VOLTAGE_COMMAND_ID, FrameContract, VoltageCommand
 from ballbeam.runtime.bus import IPV6_MULTICAST_ALL, free_udp_port, isolated_group, multicast_scope
+from ballbeam.runtime.peer_link import PEER_LINK_ENV, peer_link_pipe
 
 from ..conftest import PAPER, REPO, ballbeam_argv
 
@@ -232,6 +234,7 @@ class Bench:
         *extra: str,
         watch: bool = True,
         file_size_limit: int | None = None,
+        peer_link: bool = False,
     ) -> None:
         tmp.mkdir(parents=True, exist_ok=True)
         self.tmp = tmp
@@ -253,21 +256,40 @@ class Bench:
         self.log_path = tmp / f"{mode}-{secrets.token_hex(4)}.mcap"
         self.watch = BusWatch(self.group, self.port) if watch else None
         self._files: list[Any] = []
-        self.emulator = self._spawn(
-            "emulator", ballbeam_argv("emulator", str(PAPER), *set_args(self.overrides))
-        )
-        daemon_args = ["daemon", str(PAPER), *set_args(self.overrides), "--log", str(self.log_path)]
-        if file_size_limit is None:
-            argv = ballbeam_argv(*daemon_args)
-        else:
-            argv = [sys.executable, "-c", FSIZE_WRAPPER, str(file_size_limit), *daemon_args]
-        self.daemon = self._spawn("daemon", argv)
+        # The launcher's dead-man link (runtime/peer_link.py), as `ballbeam run` makes it.
+        link = peer_link_pipe() if peer_link else None
+        try:
+            self.emulator = self._spawn(
+                "emulator", ballbeam_argv("emulator", str(PAPER), *set_args(self.overrides)),
+                pass_fd=link[0] if link else None,
+                env={**os.environ, PEER_LINK_ENV: str(link[0])} if link else None,
+            )
+            daemon_args = [
+                "daemon", str(PAPER), *set_args(self.overrides), "--log", str(self.log_path)
+            ]
+            if file_size_limit is None:
+                argv = ballbeam_argv(*daemon_args)
+            else:
+                argv = [sys.executable, "-c", FSIZE_WRAPPER, str(file_size_limit), *daemon_args]
+            self.daemon = self._spawn("daemon", argv, pass_fd=link[1] if link else None)
+        finally:
+            for fd in link or ():
+                os.close(fd)
 
-    def _spawn(self, name: str, argv: list[str]) -> subprocess.Popen[bytes]:
+    def _spawn(
+        self,
+        name: str,
+        argv: list[str],
+        pass_fd: int | None = None,
+        env: dict[str, str] | None = None,
+    ) -> subprocess.Popen[bytes]:
         # stderr to a file: a pipe nobody reads could fill up and stall the process.
         stream = (self.tmp / f"{name}-{secrets.token_hex(3)}.stderr").open("w+b")
         self._files.append(stream)
-        process = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=stream, cwd=REPO)
+        process = subprocess.Popen(
+            argv, stdout=subprocess.PIPE, stderr=stream, cwd=REPO,
+            pass_fds=() if pass_fd is None else (pass_fd,), env=env,
+        )
         process.stderr_file = stream  # type: ignore[attr-defined]
         return process
 

@@ -23,6 +23,7 @@ from ballbeam.config import Config, load_config
 from ballbeam.errors import BallbeamError
 from ballbeam.runtime.bus import check_stays_on_host, free_udp_port, isolated_group
 from ballbeam.runtime.exit_codes import EXIT_FAILED, EXIT_OK, EXIT_PLANT_LOST
+from ballbeam.runtime.peer_link import PEER_LINK_ENV, peer_link_pipe
 from ballbeam.runtime.process import new_log_path
 
 STOP_GRACE_S = 5.0
@@ -102,18 +103,28 @@ def launch_run(
         argument for override in child_overrides for argument in ("--set", override)
     ]
     started = time.monotonic()
-    emulator = subprocess.Popen(
-        [*base, "ballbeam_emulator", *config_args],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    daemon = subprocess.Popen(
-        [*base, "ballbeam", "daemon", *config_args, "--log", str(log_path)],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    # The dead-man link (runtime/peer_link.py): the emulator zeroes the drive within a sensor
+    # period of the daemon's death, whatever kills it.
+    link_read, link_write = peer_link_pipe()
+    try:
+        emulator = subprocess.Popen(
+            [*base, "ballbeam_emulator", *config_args],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+            pass_fds=(link_read,),
+            env={**os.environ, PEER_LINK_ENV: str(link_read)},
+        )
+        daemon = subprocess.Popen(
+            [*base, "ballbeam", "daemon", *config_args, "--log", str(log_path)],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+            pass_fds=(link_write,),
+        )
+    finally:
+        os.close(link_read)
+        os.close(link_write)
     if on_started is not None:
         on_started({"emulator": emulator, "daemon": daemon})
     budget_s = (
