@@ -123,10 +123,13 @@ def _exchange_split_us(run_log: RunLog) -> dict[str, float]:
 
 
 # -- 1. real-time loop ---------------------------------------------------------------------------
+NORMAL = ("controller.realtime_priority=0", "plant.realtime_priority=0")  # no SCHED_FIFO
 REALTIME_VARIANTS: dict[str, tuple[str, ...]] = {
-    "sleep only": ("controller.spin_us=0", "controller.cpu=-1", "plant.cpu=-1"),
-    "sleep + spin 200 µs": ("controller.spin_us=200", "controller.cpu=-1", "plant.cpu=-1"),
-    "spin + CPU affinity": ("controller.spin_us=200", "controller.cpu=1", "plant.cpu=0"),
+    "sleep only": ("controller.spin_us=0", "controller.cpu=-1", "plant.cpu=-1", *NORMAL),
+    "sleep + spin 200 µs": (
+        "controller.spin_us=200", "controller.cpu=-1", "plant.cpu=-1", *NORMAL
+    ),
+    "spin + CPU affinity": ("controller.spin_us=200", "controller.cpu=1", "plant.cpu=0", *NORMAL),
     "spin + affinity + SCHED_FIFO": (
         "controller.spin_us=200",
         "controller.cpu=1",

@@ -257,6 +257,15 @@ class ControllerSection(_Section):
         le=100_000,
         description="real time: command latency the guard allows for (it looks this much further)",
     )
+    lateness_probe_s: float = Field(
+        0.3, ge=0, le=10, description="real time: before the run, how long the daemon measures "
+        "its own lateness; if the worst exceeds theta_guard_latency_us, the guard's latency "
+        "allowance becomes it plus one period (0: no probe)"
+    )
+    max_guard_latency_us: int = Field(
+        10_000, ge=0, le=100_000, description="real time: the most the probe may raise the "
+        "guard's latency allowance to"
+    )
     theta_guard_brake_v: float | None = Field(
         None, gt=0, description="braking voltage the guard counts on; default V − dead zone"
     )
@@ -324,8 +333,9 @@ class ControllerSection(_Section):
     cpu: int | None = Field(
         None, ge=-1, le=1023, description="real time: pin the daemon to this CPU (-1: don't)"
     )
-    realtime_priority: int | None = Field(
-        None, ge=1, le=99, description="SCHED_FIFO priority for the daemon, where permitted"
+    realtime_priority: int = Field(
+        45, ge=0, le=99, description="real time: SCHED_FIFO priority for the daemon, where "
+        "permitted (0: normal scheduling); below the kernel's interrupt threads (50)"
     )
 
     @property
@@ -363,8 +373,9 @@ class PlantSection(_Section):
     cpu: int | None = Field(
         None, ge=-1, le=1023, description="real time: pin the emulator to this CPU (-1: don't)"
     )
-    realtime_priority: int | None = Field(
-        None, ge=1, le=99, description="SCHED_FIFO priority for the emulator, where permitted"
+    realtime_priority: int = Field(
+        44, ge=0, le=99, description="real time: SCHED_FIFO priority for the emulator, where "
+        "permitted (0: normal scheduling)"
     )
     command_loss: float = Field(0.0, ge=0, lt=1, description="fault injection: drop fraction")
     sensor_loss: float = Field(0.0, ge=0, lt=1, description="fault injection: drop fraction")

@@ -24,7 +24,7 @@ from ballbeam.errors import BallbeamError
 from ballbeam.runtime.bus import check_stays_on_host, free_udp_port, isolated_group
 from ballbeam.runtime.exit_codes import EXIT_FAILED, EXIT_OK, EXIT_PLANT_LOST
 from ballbeam.runtime.peer_link import PEER_LINK_ENV, peer_link_pipe
-from ballbeam.runtime.process import new_log_path
+from ballbeam.runtime.process import new_log_path, realtime_permitted, realtime_refused_message
 
 STOP_GRACE_S = 5.0
 # The daemon's exits after which its run is recorded whole (summarised by ``ballbeam run``).
@@ -97,6 +97,11 @@ def launch_run(
         group = isolated_group(config.bus.channel)
         child_overrides += [f"bus.channel='{group}'", f"bus.port={free_udp_port()}"]
         config = load_config(config_path, child_overrides)
+    if config.run.mode == "realtime":
+        priority = max(config.controller.realtime_priority, config.plant.realtime_priority)
+        if not realtime_permitted(priority):
+            # The children say so in their own logs too; the user hears it once, up front.
+            print(f"ballbeam: {realtime_refused_message(priority)}", file=sys.stderr)
     log_path = new_log_path(config.run.log_dir, config.plan.kind)
     base = [sys.executable, "-m"]
     config_args = ([config_path] if config_path else []) + [

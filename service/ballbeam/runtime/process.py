@@ -8,6 +8,7 @@ import datetime as dt
 import gc
 import logging
 import os
+import resource
 import secrets
 import subprocess
 from importlib import metadata
@@ -62,9 +63,10 @@ def package_versions() -> dict[str, str]:
     return versions
 
 
-def apply_scheduling(cpu: int | None, realtime_priority: int | None) -> dict[str, str]:
-    """Pin to a CPU and/or switch to SCHED_FIFO; what was refused is reported, not fatal
-    (an unprivileged user still gets a working, if jittery, bench)."""
+def apply_scheduling(cpu: int | None, realtime_priority: int) -> dict[str, str]:
+    """Pin to a CPU and/or switch to SCHED_FIFO (priority 0: don't); what was refused is
+    reported in one line that says how to grant it, not fatal (an unprivileged user still gets
+    a working, if jittery, bench)."""
     applied: dict[str, str] = {}
     if cpu is not None and cpu >= 0:
         try:
@@ -73,14 +75,47 @@ def apply_scheduling(cpu: int | None, realtime_priority: int | None) -> dict[str
         except OSError as error:
             applied["cpu"] = f"refused: {error.strerror}"
             log.warning("cannot pin to CPU %d: %s", cpu, error.strerror)
-    if realtime_priority is not None:
+    if realtime_priority:
         try:
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(realtime_priority))
             applied["realtime_priority"] = f"SCHED_FIFO {realtime_priority}"
         except OSError as error:
             applied["realtime_priority"] = f"refused: {error.strerror}"
-            log.warning("SCHED_FIFO %d refused: %s", realtime_priority, error.strerror)
+            log.warning("%s", realtime_refused_message(
+                realtime_priority, error.strerror or "not permitted"
+            ))
     return applied
+
+
+CAP_SYS_NICE = 23  # capability bit (linux/capability.h)
+
+
+def realtime_permitted(priority: int) -> bool:
+    """Whether this process may take SCHED_FIFO ``priority``: CAP_SYS_NICE, or an rtprio
+    limit that high (what the kernel checks)."""
+    if priority <= 0:
+        return True
+    try:
+        with open("/proc/self/status", encoding="ascii") as status:
+            for line in status:
+                if line.startswith("CapEff:") and int(line.split()[1], 16) >> CAP_SYS_NICE & 1:
+                    return True
+    except OSError:
+        pass
+    soft, _ = resource.getrlimit(resource.RLIMIT_RTPRIO)
+    return soft == resource.RLIM_INFINITY or soft >= priority
+
+
+def realtime_refused_message(priority: int, reason: str = "not permitted") -> str:
+    """One line: what was refused, what it costs, and how to grant it."""
+    return (
+        f"real-time scheduling refused (SCHED_FIFO {priority}: {reason}): running at normal "
+        "priority, where other jobs' load makes the loop late (the angle guard keeps the "
+        "lateness it measures as margin); to grant it, run as root, or give this user an "
+        f"rtprio limit of {priority} or more ('USER - rtprio {priority}' in "
+        "/etc/security/limits.conf, then log in again), or 'setcap cap_sys_nice+ep' on the "
+        "Python interpreter"
+    )
 
 
 def settle_heap() -> None:

@@ -51,3 +51,15 @@ class Ticker:
             pass
         self._next_cycle = cycle + 1
         return Tick(cycle=cycle, deadline_ns=deadline_ns, start_ns=now_ns, skipped=skipped)
+
+
+def worst_lateness_ns(period_ns: int, duration_s: float, spin_ns: int) -> int:
+    """Run an empty loop on this ticker's schedule for ``duration_s``: the worst lateness of a
+    cycle's start [ns] (a skipped period counts as the time since its deadline). What the
+    process's scheduling gets it on this machine now, measured the way the loop will run."""
+    ticker = Ticker(period_ns, spin_ns=spin_ns)
+    worst_ns = 0
+    for _ in range(max(int(duration_s * 1e9 // period_ns), 1)):
+        tick = ticker.wait()
+        worst_ns = max(worst_ns, tick.lateness_ns + tick.skipped * period_ns)
+    return worst_ns

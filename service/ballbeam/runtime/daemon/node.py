@@ -25,8 +25,43 @@ from ballbeam.runtime.process import (
     settle_heap,
 )
 from ballbeam.runtime.stop import StopFlag
+from ballbeam.runtime.ticker import worst_lateness_ns
 
 log = logging.getLogger("ballbeam")
+
+
+def with_measured_latency(config: Config) -> tuple[Config, dict[str, str]]:
+    """The config with the angle guard's latency allowance raised to the lateness this process
+    measures now (its scheduling, this machine's load), and what was measured.
+
+    The guard judges the servo's state the allowance ahead; a loop that runs late lets the
+    previous command act that much longer, so a guard that assumed less brakes too late (at
+    normal priority on a busy machine: 52.3° and more). Where real-time scheduling was granted
+    the probe finds well under the default 1 ms and nothing changes."""
+    controller = config.controller
+    if controller.lateness_probe_s <= 0:
+        return config, {}
+    worst_ns = worst_lateness_ns(
+        controller.period_ns, controller.lateness_probe_s, controller.spin_us * 1000
+    )
+    # The assumed allowance already covers a command landing up to that late; beyond it, the
+    # worst lateness seen plus the period the command then acts for.
+    worst_us, assumed_us = worst_ns // 1000, controller.theta_guard_latency_us
+    allowance_us = assumed_us
+    if worst_us > assumed_us:
+        allowance_us = max(assumed_us, min(worst_us + controller.period_ns // 1000,
+                                           controller.max_guard_latency_us))
+    probe = {"lateness_probe_max_us": str(worst_us), "guard_latency_us": str(allowance_us)}
+    if allowance_us != controller.theta_guard_latency_us:
+        log.warning(
+            "this process ran up to %.1f ms late before the run: the angle guard allows %.1f ms "
+            "of command latency (instead of %.1f ms) and brakes that much earlier",
+            worst_ns / 1e6, allowance_us / 1e3, controller.theta_guard_latency_us / 1e3,
+        )
+        config = config.model_copy(update={
+            "controller": controller.model_copy(update={"theta_guard_latency_us": allowance_us})
+        })
+    return config, probe
 
 
 def run_daemon(config: Config, log_path: Path, config_path: str | None) -> str:
@@ -39,6 +74,11 @@ def run_daemon(config: Config, log_path: Path, config_path: str | None) -> str:
     if config.run.mode == "realtime":
         sys.setswitchinterval(REALTIME_SWITCH_INTERVAL_S)
         scheduling = apply_scheduling(config.controller.cpu, config.controller.realtime_priority)
+        assumed_us = config.controller.theta_guard_latency_us
+        config, probe = with_measured_latency(config)
+        scheduling.update(probe)
+        if config.controller.theta_guard_latency_us != assumed_us:
+            design = controller_design(config)  # recorded with the config that made it
     contract = FrameContract.load()
     resolved = json.dumps(config.model_dump(mode="json"), sort_keys=True)
     attachments = [

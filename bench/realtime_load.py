@@ -1,0 +1,112 @@
+"""Real time under load, side by side in one run: the paper set-up at 1 kHz over the bus, quiet
+and with two CPU-bound processes running, with the real-time scheduling the defaults ask for
+(SCHED_FIFO, where granted) and as a user it is refused to.
+
+    .venv/bin/python bench/realtime_load.py                  # 4 runs of 60 s (about 5 minutes)
+    .venv/bin/python bench/realtime_load.py --duration 20
+
+Prints, per run: overruns, p99 and worst lateness, the largest |θ| of the plant's truth, the
+rest time (|x| <= 0.5 mm and |θ| <= 0.5° to the end) and the guard's latency allowance (what the
+daemon's probe measured before the run). The unprivileged runs drop every capability and the
+rtprio limit with ``setpriv``/``prlimit`` (util-linux) when the bench runs as root.
+The load processes are killed when each run ends (and cannot outlive the bench's timeout).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import shutil
+import subprocess
+import sys
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+from ballbeam.logs.reader import read_log
+from ballbeam.runtime.process import realtime_permitted
+
+HOGS = 2
+HOG = "import time\nend = time.monotonic() + {limit}\nwhile time.monotonic() < end: pass"
+
+
+@contextlib.contextmanager
+def cpu_load(count: int, limit_s: float) -> Iterator[None]:
+    hogs = [
+        subprocess.Popen([sys.executable, "-c", HOG.format(limit=limit_s)]) for _ in range(count)
+    ]
+    try:
+        yield
+    finally:
+        for hog in hogs:
+            hog.kill()
+            hog.wait()
+
+
+def unprivileged_prefix() -> list[str] | None:
+    if not realtime_permitted(45):
+        return []
+    setpriv, prlimit = shutil.which("setpriv"), shutil.which("prlimit")
+    if setpriv is None or prlimit is None:
+        return None
+    return [setpriv, "--bounding-set=-all", "--inh-caps=-all", "--ambient-caps=-all",
+            "--no-new-privs", "--", prlimit, "--rtprio=0:0"]
+
+
+def run_once(prefix: list[str], duration_s: float, log_dir: Path) -> dict[str, Any]:
+    command = [*prefix, sys.executable, "-m", "ballbeam", "run",
+               "--set", "run.mode='realtime'", "--set", f"run.duration_s={duration_s}",
+               "--set", f"run.log_dir='{log_dir}'", "--json"]
+    done = subprocess.run(command, capture_output=True, text=True, check=False,
+                          timeout=duration_s * 3 + 120)
+    if not done.stdout.strip():
+        return {"error": done.stderr.strip().splitlines()[-1:]}
+    summary = json.loads(done.stdout)
+    run = read_log(summary["log_path"]).metadata.get("run", {})
+    return {
+        "exit": done.returncode,
+        "overruns": summary["overruns"],
+        "lateness_p99_us": round(summary["lateness_p99_us"], 1),
+        "lateness_max_us": round(summary["lateness_max_us"], 1),
+        "max_abs_theta_deg": round(summary["max_abs_theta_deg"], 3),
+        "rest_time_s": summary["rest_time_s"],
+        "plant_missed_periods": summary.get("plant_missed_periods"),
+        "scheduling": run.get("scheduling_realtime_priority"),
+        "guard_latency_us": run.get("scheduling_guard_latency_us"),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--duration", type=float, default=60.0, help="seconds per run")
+    args = parser.parse_args(argv)
+    unprivileged = unprivileged_prefix()
+    variants = [("real-time scheduling", [])]
+    if unprivileged is not None:
+        variants.append(("unprivileged", unprivileged))
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for load in (0, HOGS):
+            for name, prefix in variants:
+                with cpu_load(load, args.duration * 3 + 120):
+                    row = run_once(prefix, args.duration, Path(tmp))
+                rows.append({"variant": name, "cpu_hogs": load, **row})
+                print(json.dumps(rows[-1]), flush=True)
+    print()
+    print(f"{'variant':<22}{'load':>5}{'overruns':>9}{'p99 µs':>9}{'max µs':>10}{'|θ| max':>9}"
+          f"{'rest s':>8}{'guard µs':>9}")
+    for row in rows:
+        if "error" in row:
+            print(f"{row['variant']:<22}{row['cpu_hogs']:>5}  failed: {row['error']}")
+            continue
+        rest = f"{row['rest_time_s']:.3f}" if row["rest_time_s"] is not None else "never"
+        print(f"{row['variant']:<22}{row['cpu_hogs']:>5}{row['overruns']:>9}"
+              f"{row['lateness_p99_us']:>9}{row['lateness_max_us']:>10}"
+              f"{row['max_abs_theta_deg']:>9}{rest:>8}{row['guard_latency_us'] or '-':>9}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,65 @@
+"""Real time as a user the system refuses real-time scheduling: one line says what to grant and
+how, the run goes on at normal priority with the angle guard's latency allowance raised to the
+lateness the daemon measured, and the servo stays within 52.0°.
+
+Run as root, the test takes the privilege away the way a normal login lacks it: no
+capabilities (CAP_SYS_NICE among them) and an rtprio limit of 0 (``setpriv``, util-linux).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from ballbeam.logs.reader import read_log
+from ballbeam.runtime.process import realtime_permitted
+
+from .conftest import REPO
+
+REFUSED = "real-time scheduling refused"
+THETA_LIMIT_DEG = 52.0
+TRUTH_RESOLUTION_DEG = 1e-3  # the truth frame's 1e-5 rad, with room to spare
+
+
+def unprivileged_prefix() -> list[str]:
+    if not realtime_permitted(45):
+        return []  # already a user without real-time scheduling
+    setpriv = shutil.which("setpriv")
+    prlimit = shutil.which("prlimit")
+    if setpriv is None or prlimit is None:
+        pytest.skip("needs setpriv and prlimit (Debian: apt-get install util-linux) to drop "
+                    "the real-time privilege")
+    return [
+        setpriv, "--bounding-set=-all", "--inh-caps=-all", "--ambient-caps=-all",
+        "--no-new-privs", "--", prlimit, "--rtprio=0:0",
+    ]
+
+
+@pytest.mark.bus
+def test_a_realtime_run_without_the_privilege_says_how_to_grant_it_and_holds_52(
+    tmp_path: Path,
+) -> None:
+    command = [
+        *unprivileged_prefix(), sys.executable, "-m", "ballbeam", "run",
+        "--set", "run.mode='realtime'", "--set", "run.duration_s=3.0",
+        "--set", f"run.log_dir='{tmp_path}'", "--json",
+    ]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=120, cwd=REPO,
+                          check=False)
+    assert done.returncode == 0, done.stderr[-3000:]
+    refusals = [line for line in done.stderr.splitlines() if REFUSED in line]
+    assert len(refusals) == 1, done.stderr
+    assert "rtprio" in refusals[0] and "limits.conf" in refusals[0]
+    summary = json.loads(done.stdout)
+    assert summary["end_reason"] == "completed"
+    assert summary["max_abs_theta_deg"] <= THETA_LIMIT_DEG + TRUTH_RESOLUTION_DEG
+    # The daemon recorded what it got and what it measured.
+    run = read_log(summary["log_path"]).metadata["run"]
+    assert run["scheduling_realtime_priority"].startswith("refused")
+    assert int(run["scheduling_guard_latency_us"]) >= 1000
+    assert int(run["scheduling_lateness_probe_max_us"]) >= 0
