@@ -25,7 +25,7 @@ import sys
 import tempfile
 import zlib
 from array import array
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import IO
 
@@ -57,6 +57,7 @@ _MESSAGE_INDEX_HEAD = struct.Struct("<BQHI")
 # opcode, record length, summary start, summary offset start; then the summary CRC
 _FOOTER_HEAD = struct.Struct("<BQQQ")
 _U32 = struct.Struct("<I")
+_RECORD_LENGTH = struct.Struct("<Q")
 _LITTLE_ENDIAN = sys.byteorder == "little"
 COMPRESSION = "zstd"
 
@@ -86,6 +87,22 @@ class OpenChunk:
     start_ns: int = 0
     end_ns: int = 0
     messages: int = 0
+
+
+def chunk_messages(chunk: OpenChunk, channel_id: int) -> Iterator[tuple[int, bytes]]:
+    """The (log time, payload) of each message of one channel in a taken chunk, in order.
+
+    For a reader of the chunk before it is written (the live view): it walks the channel's
+    index entries instead of every record of the chunk."""
+    pairs = chunk.index.get(channel_id)
+    if pairs is None:
+        return
+    records = chunk.records
+    for position in range(0, len(pairs), 2):
+        offset = pairs[position + 1]
+        length = _RECORD_LENGTH.unpack_from(records, offset + 1)[0]
+        start = offset + _MESSAGE_HEAD.size
+        yield pairs[position], bytes(records[start : start + length - _MESSAGE_FIXED_BYTES])
 
 
 class McapFile:

@@ -1,0 +1,163 @@
+"""The live view: a run's channels served over Foxglove's WebSocket protocol while it goes.
+
+``ballbeam run --live`` and ``ballbeam daemon --live`` start :class:`LiveView`, a WebSocket
+server of the official ``foxglove-sdk`` (its Rust server runs on its own threads), bound to the
+loopback interface only. It is the recorder's :class:`~ballbeam.logs.recorder.ChunkTap`: every
+channel of the log is advertised with the log's topic, schema name, schema encoding and message
+encoding, and every chunk the recorder's writer thread has written is forwarded message by
+message with the log's own bytes and log times. So the control loop does no work for it, and a
+viewer sees exactly what the file holds, at most one flush interval (30 ms) later.
+
+Never blocking: only channels some client subscribed to are forwarded (the SDK knows, per
+channel); handing a message to the server only queues it, and a client that does not keep up
+loses its oldest queued messages (``backlog_messages`` per client), never stalls the writer.
+"""
+
+from __future__ import annotations
+
+import errno
+import logging
+import os
+import socket
+import time
+from dataclasses import dataclass, field
+
+import foxglove
+
+from ballbeam.errors import LiveViewError
+from ballbeam.logs.mcap_file import OpenChunk, chunk_messages
+
+log = logging.getLogger("ballbeam.live")
+
+LIVE_HOST = "127.0.0.1"  # loopback only: the live view never listens beyond this host
+DEFAULT_LIVE_PORT = 8765  # the Foxglove app's default connection string
+# Per client. Above a chunk's worth of every channel in lock-step (~30 ms at 8x real time:
+# ~2,700 messages), so a client that keeps up on average loses nothing to a chunk's burst.
+BACKLOG_MESSAGES = 8192
+
+
+def live_url(port: int) -> str:
+    return f"ws://{LIVE_HOST}:{port}"
+
+
+def check_port_free(port: int) -> None:
+    """Raise LiveViewError (one line) if ``port`` cannot be bound on the loopback interface.
+
+    ``ballbeam run`` asks before it starts its two processes, so a taken port is one line and
+    exit 2 rather than a daemon dying mid-start. (The daemon's own bind is the real check.)"""
+    probe = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    try:
+        # As the server's own listener does: a port left in TIME_WAIT is free to it.
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        probe.bind((LIVE_HOST, port))
+    except OSError as exc:
+        raise _port_error(port, exc.strerror or str(exc), exc.errno) from exc
+    finally:
+        probe.close()
+
+
+def _port_error(port: int, reason: str, code: int | None) -> LiveViewError:
+    error = LiveViewError(
+        f"cannot serve the live view on {live_url(port)}: {reason} "
+        "(choose another port with --live-port)"
+    )
+    error.errno = code
+    return error
+
+
+@dataclass
+class _Forwarded:
+    """What the live path did, for the "live" metadata record of the log."""
+
+    chunks: int = 0
+    messages: int = 0
+    forward_ns: int = 0  # writer-thread CPU time spent forwarding (the loop may wait on it)
+    channel_ids: dict[int, foxglove.Channel] = field(default_factory=dict)
+
+
+class LiveView:
+    """The WebSocket server and the recorder's tap into it. ``stop()`` when the run is over."""
+
+    def __init__(self, port: int = DEFAULT_LIVE_PORT, name: str = "ballbeam-hil") -> None:
+        # A private context: only the run's channels reach this server, whatever else in the
+        # process logs to Foxglove's global one.
+        self._context = foxglove.Context()
+        try:
+            self._server = foxglove.start_server(
+                name=name,
+                host=LIVE_HOST,
+                port=port,
+                context=self._context,
+                message_backlog_size=BACKLOG_MESSAGES,
+            )
+        except RuntimeError as exc:  # the SDK reports every start failure as one
+            text = str(exc)
+            code = errno.EADDRINUSE if "in use" in text else None
+            reason = os.strerror(code) if code is not None else text
+            raise _port_error(port, reason, code) from exc
+        self.port: int = self._server.port
+        self.url = live_url(self.port)
+        self._done = _Forwarded()
+        self._stopped = False
+
+    # ---- ChunkTap ---------------------------------------------------------------------------
+
+    def add_channel(
+        self,
+        channel_id: int,
+        topic: str,
+        message_encoding: str,
+        schema_name: str,
+        schema_encoding: str,
+        schema_data: bytes,
+    ) -> None:
+        schema = foxglove.Schema(name=schema_name, encoding=schema_encoding, data=schema_data)
+        self._done.channel_ids[channel_id] = foxglove.Channel(
+            topic, schema=schema, message_encoding=message_encoding, context=self._context
+        )
+
+    def take(self, chunk: OpenChunk) -> None:
+        """Forward a written chunk's messages on the channels some client subscribed to."""
+        started_ns = time.thread_time_ns()
+        forwarded = 0
+        for channel_id, channel in self._done.channel_ids.items():
+            if not channel.has_sinks():
+                continue  # nobody listens: no work at all
+            send = channel.base.log  # the SDK's binary log, without the JSON dispatch
+            for log_time_ns, payload in chunk_messages(chunk, channel_id):
+                send(payload, log_time_ns, None)
+                forwarded += 1
+        done = self._done
+        done.chunks += 1
+        done.messages += forwarded
+        done.forward_ns += time.thread_time_ns() - started_ns
+
+    def stats(self) -> dict[str, str]:
+        done = self._done
+        return {
+            "url": self.url,
+            "chunks": str(done.chunks),
+            "messages_forwarded": str(done.messages),
+            "forward_ns": str(done.forward_ns),
+        }
+
+    # ---- the end ----------------------------------------------------------------------------
+
+    def stop(self) -> None:
+        """Close the channels (clients see them unadvertised) and stop the server. Idempotent."""
+        if self._stopped:
+            return
+        self._stopped = True
+        for channel in self._done.channel_ids.values():
+            channel.close()
+        self._server.stop()
+
+
+__all__ = [
+    "BACKLOG_MESSAGES",
+    "DEFAULT_LIVE_PORT",
+    "LIVE_HOST",
+    "LiveView",
+    "check_port_free",
+    "live_url",
+]
