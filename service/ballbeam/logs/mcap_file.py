@@ -97,12 +97,13 @@ def chunk_messages(chunk: OpenChunk, channel_id: int) -> Iterator[tuple[int, byt
     pairs = chunk.index.get(channel_id)
     if pairs is None:
         return
-    records = chunk.records
-    for position in range(0, len(pairs), 2):
-        offset = pairs[position + 1]
-        length = _RECORD_LENGTH.unpack_from(records, offset + 1)[0]
-        start = offset + _MESSAGE_HEAD.size
-        yield pairs[position], bytes(records[start : start + length - _MESSAGE_FIXED_BYTES])
+    records = bytes(chunk.records)  # one copy, so that each payload is one slice
+    record_length = _RECORD_LENGTH.unpack_from
+    head = _MESSAGE_HEAD.size
+    # A record's length field counts the bytes after it: the payload ends at offset + 9 + it.
+    for log_time_ns, offset in zip(pairs[0::2], pairs[1::2], strict=True):
+        end = offset + 9 + record_length(records, offset + 1)[0]
+        yield log_time_ns, records[offset + head : end]
 
 
 class McapFile:
