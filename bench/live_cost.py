@@ -48,12 +48,13 @@ def client_main(port: int, topics: str, give_up_s: float) -> None:
                 f"ws://127.0.0.1:{port}", subprotocols=SUBPROTOCOLS, max_size=None,
                 open_timeout=5,
             )
-            break
         except OSError:
             if time.monotonic() > deadline:
                 print(json.dumps({"received": 0, "error": "no server"}))
                 return
             time.sleep(0.02)
+            continue
+        break
     received = 0
     subscriptions = 0
     with connection:
@@ -86,7 +87,9 @@ def free_port() -> int:
         return int(probe.getsockname()[1])
 
 
-def one_run(variant: str, mode: str, duration_s: float, log_dir: Path) -> dict[str, Any]:
+def one_run(
+    variant: str, mode: str, duration_s: float, log_dir: Path, overrides: list[str]
+) -> dict[str, Any]:
     from ballbeam.evaluation.summary import summarise
     from ballbeam.logs.reader import read_log
     from ballbeam.runtime.launcher import launch_run
@@ -107,7 +110,8 @@ def one_run(variant: str, mode: str, duration_s: float, log_dir: Path) -> dict[s
     try:
         result = launch_run(
             None,
-            [f"run.mode='{mode}'", f"run.duration_s={duration_s}", f"run.log_dir='{log_dir}'"],
+            [f"run.mode='{mode}'", f"run.duration_s={duration_s}", f"run.log_dir='{log_dir}'",
+             *overrides],
             live_port=port,
         )
         received = None
@@ -123,9 +127,13 @@ def one_run(variant: str, mode: str, duration_s: float, log_dir: Path) -> dict[s
     cycles = int(summary["cycles"])
     live_record = run_log.metadata.get("live", {})
     forward_ns = int(live_record.get("forward_ns", 0))
+    start_ns = run_log.topics["/timing"].values["start_ns"]
+    # The loop's own pace: in lock-step, how fast the run goes (a slower loop shows here).
+    cycle_us = float(start_ns[-1] - start_ns[0]) / (len(start_ns) - 1) / 1e3
     return {
         "variant": variant,
         "cycles": cycles,
+        "cycle_us": cycle_us,
         "live_us_per_cycle": forward_ns / cycles / 1e3 if live else None,
         "forwarded": int(live_record.get("messages_forwarded", 0)) if live else None,
         "received": received,
@@ -148,18 +156,22 @@ def _cell(value: Any, digits: int = 2) -> str:
     return str(value)
 
 
-def table(rows: list[dict[str, Any]], mode: str, duration_s: float) -> str:
+def table(
+    rows: list[dict[str, Any]], mode: str, duration_s: float, overrides: list[str]
+) -> str:
     lines = [
-        f"live view cost, paper run over the bus, {mode}, {duration_s:g} s a run "
+        f"live view cost, paper run over the bus, {mode}, {duration_s:g} s a run"
+        + "".join(f", --set {override}" for override in overrides)
+        + " "
         f"(target <= {TARGET_US_PER_CYCLE:g} us a cycle, no extra overruns)",
-        "| variant | live path us/cycle | forwarded | received | overruns | lateness p99 / max "
-        "[us] | recorder dropped |",
-        "| --- | --- | --- | --- | --- | --- | --- |",
+        "| variant | live path us/cycle | forwarded | received | loop us/cycle | overruns "
+        "| lateness p99 / max [us] | recorder dropped |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for row in rows:
         lines.append(
             f"| {row['variant']} | {_cell(row['live_us_per_cycle'])} | {_cell(row['forwarded'])} "
-            f"| {_cell(row['received'])} | {_cell(row['overruns'])} "
+            f"| {_cell(row['received'])} | {_cell(row['cycle_us'], 1)} | {_cell(row['overruns'])} "
             f"| {_cell(row['lateness_p99_us'], 1)} / {_cell(row['lateness_max_us'], 0)} "
             f"| {_cell(row['recorder_dropped'])} |"
         )
@@ -172,6 +184,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--mode", choices=("realtime", "lockstep"), default="realtime")
     parser.add_argument("--repeat", type=int, default=1, help="rounds of the four variants")
     parser.add_argument("--json", metavar="PATH", help="also write the rows as JSON")
+    parser.add_argument(
+        "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+        help="config override for every run, e.g. controller.realtime_priority=50",
+    )
     parser.add_argument("--client", type=int, metavar="PORT", help=argparse.SUPPRESS)
     parser.add_argument("--topics", default=EVERY_TOPIC, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -182,11 +198,14 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="live_cost_") as tmp:
         for round_index in range(args.repeat):
             for variant in VARIANTS:  # interleaved: the machine's moods fall on every variant
-                row = one_run(variant, args.mode, args.duration, Path(tmp) / f"{round_index}")
+                row = one_run(
+                    variant, args.mode, args.duration, Path(tmp) / f"{round_index}",
+                    args.overrides,
+                )
                 rows.append(row)
                 print(f"  {variant}: {_cell(row['live_us_per_cycle'])} us/cycle, "
                       f"{row['overruns']} overruns", file=sys.stderr, flush=True)
-    print(table(rows, args.mode, args.duration))
+    print(table(rows, args.mode, args.duration, args.overrides))
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=2))
     return 0

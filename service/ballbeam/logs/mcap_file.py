@@ -89,15 +89,20 @@ class OpenChunk:
     messages: int = 0
 
 
-def chunk_messages(chunk: OpenChunk, channel_id: int) -> Iterator[tuple[int, bytes]]:
+def chunk_messages(
+    chunk: OpenChunk, channel_id: int, records: bytes | None = None
+) -> Iterator[tuple[int, bytes]]:
     """The (log time, payload) of each message of one channel in a taken chunk, in order.
 
     For a reader of the chunk before it is written (the live view): it walks the channel's
-    index entries instead of every record of the chunk."""
+    index entries instead of every record of the chunk. ``records`` is ``bytes(chunk.records)``
+    when the caller reads several channels of one chunk (one copy instead of one a channel),
+    so that each payload is one slice."""
     pairs = chunk.index.get(channel_id)
     if pairs is None:
         return
-    records = bytes(chunk.records)  # one copy, so that each payload is one slice
+    if records is None:
+        records = bytes(chunk.records)
     record_length = _RECORD_LENGTH.unpack_from
     head = _MESSAGE_HEAD.size
     # A record's length field counts the bytes after it: the payload ends at offset + 9 + it.

@@ -120,11 +120,14 @@ class LiveView:
         """Forward a written chunk's messages on the channels some client subscribed to."""
         started_ns = time.thread_time_ns()
         forwarded = 0
+        records: bytes | None = None
         for channel_id, channel in self._done.channel_ids.items():
             if not channel.has_sinks():
                 continue  # nobody listens: no work at all
+            if records is None:
+                records = bytes(chunk.records)  # one copy for every channel of the chunk
             send = channel.base.log  # the SDK's binary log, without the JSON dispatch
-            for log_time_ns, payload in chunk_messages(chunk, channel_id):
+            for log_time_ns, payload in chunk_messages(chunk, channel_id, records):
                 send(payload, log_time_ns, None)
                 forwarded += 1
         done = self._done
