@@ -8,9 +8,10 @@ encoding, and every chunk the recorder's writer thread has written is forwarded 
 message with the log's own bytes and log times. So the control loop does no work for it, and a
 viewer sees exactly what the file holds, at most one flush interval (30 ms) later.
 
-Never blocking: only channels some client subscribed to are forwarded (the SDK knows, per
-channel); handing a message to the server only queues it, and a client that does not keep up
-loses its oldest queued messages (``backlog_messages`` per client), never stalls the writer.
+Never blocking: only channels some client subscribed to are forwarded (the server's
+subscribe and unsubscribe callbacks keep the set; with no client a chunk costs one look at an
+empty set); handing a message to the server only queues it, and a client that does not keep up
+loses its oldest queued messages (``BACKLOG_MESSAGES`` per client), never stalls the writer.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import time
 from dataclasses import dataclass, field
 
 import foxglove
+from foxglove.websocket import ChannelView, Client, ServerListener
 
 from ballbeam.errors import LiveViewError
 from ballbeam.logs.mcap_file import OpenChunk, chunk_messages
@@ -65,6 +67,24 @@ def _port_error(port: int, reason: str, code: int | None) -> LiveViewError:
     return error
 
 
+class _Subscriptions(ServerListener):
+    """The server's listener: which channels (SDK ids) some client subscribes to. Called on the
+    server's threads; ``channels`` is replaced, never mutated, so a reader needs no lock."""
+
+    def __init__(self) -> None:
+        self._pairs: set[tuple[int, int]] = set()  # (client id, channel id)
+        self.channels: frozenset[int] = frozenset()
+
+    def on_subscribe(self, client: Client, channel: ChannelView) -> None:
+        self._pairs.add((client.id, channel.id))
+        self.channels = frozenset(pair[1] for pair in self._pairs)
+
+    def on_unsubscribe(self, client: Client, channel: ChannelView) -> None:
+        # Also called for each subscription of a client that disconnects.
+        self._pairs.discard((client.id, channel.id))
+        self.channels = frozenset(pair[1] for pair in self._pairs)
+
+
 @dataclass
 class _Forwarded:
     """What the live path did, for the "live" metadata record of the log."""
@@ -72,7 +92,7 @@ class _Forwarded:
     chunks: int = 0
     messages: int = 0
     forward_ns: int = 0  # writer-thread CPU time spent forwarding (the loop may wait on it)
-    channel_ids: dict[int, foxglove.Channel] = field(default_factory=dict)
+    channel_ids: dict[int, foxglove.Channel] = field(default_factory=dict)  # MCAP id → channel
 
 
 class LiveView:
@@ -82,12 +102,14 @@ class LiveView:
         # A private context: only the run's channels reach this server, whatever else in the
         # process logs to Foxglove's global one.
         self._context = foxglove.Context()
+        self._subscriptions = _Subscriptions()
         try:
             self._server = foxglove.start_server(
                 name=name,
                 host=LIVE_HOST,
                 port=port,
                 context=self._context,
+                server_listener=self._subscriptions,
                 message_backlog_size=BACKLOG_MESSAGES,
             )
         except RuntimeError as exc:  # the SDK reports every start failure as one
@@ -121,9 +143,10 @@ class LiveView:
         started_ns = time.thread_time_ns()
         forwarded = 0
         records: bytes | None = None
-        for channel_id, channel in self._done.channel_ids.items():
-            if not channel.has_sinks():
-                continue  # nobody listens: no work at all
+        subscribed = self._subscriptions.channels
+        for channel_id, channel in self._done.channel_ids.items() if subscribed else ():
+            if channel.id() not in subscribed or not channel.has_sinks():
+                continue  # nobody listens: no work
             if records is None:
                 records = bytes(chunk.records)  # one copy for every channel of the chunk
             send = channel.base.log  # the SDK's binary log, without the JSON dispatch
