@@ -34,8 +34,6 @@ DEFAULT_LIVE_PORT = 8765  # the Foxglove app's default connection string
 # Per client. Above a chunk's worth of every channel in lock-step (~30 ms at 8x real time:
 # ~2,700 messages), so a client that keeps up on average loses nothing to a chunk's burst.
 BACKLOG_MESSAGES = 8192
-# About 20 µs of forwarding at a time between chances for the loop thread to take the GIL.
-YIELD_EVERY_MESSAGES = 32
 
 
 def live_url(port: int) -> str:
@@ -155,10 +153,6 @@ class LiveView:
             for log_time_ns, payload in chunk_messages(chunk, channel_id, records):
                 send(payload, log_time_ns, None)
                 forwarded += 1
-                if forwarded % YIELD_EVERY_MESSAGES == 0:
-                    # Let a waking control loop have the interpreter now rather than at the
-                    # next switch interval (0.2 ms in real time): the loop never waits long.
-                    time.sleep(0)
         done = self._done
         done.chunks += 1
         done.messages += forwarded
@@ -189,7 +183,6 @@ __all__ = [
     "BACKLOG_MESSAGES",
     "DEFAULT_LIVE_PORT",
     "LIVE_HOST",
-    "YIELD_EVERY_MESSAGES",
     "LiveView",
     "check_port_free",
     "live_url",
