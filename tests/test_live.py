@@ -53,6 +53,7 @@ class Session:
     advertised: dict[str, dict[str, Any]] = field(default_factory=dict)
     received: dict[str, list[tuple[int, bytes]]] = field(default_factory=dict)
     subprotocol: str | None = None
+    statuses: list[dict[str, Any]] = field(default_factory=list)
 
 
 async def watch(port: int, process: subprocess.Popen[str], give_up_s: float) -> Session:
@@ -76,6 +77,8 @@ async def watch(port: int, process: subprocess.Popen[str], give_up_s: float) -> 
             async for frame in connection:
                 if isinstance(frame, str):
                     message = json.loads(frame)
+                    if message["op"] == "status":
+                        session.statuses.append(message)
                     if message["op"] != "advertise":
                         continue
                     wanted = []
@@ -149,6 +152,10 @@ def test_a_websocket_client_sees_the_runs_messages_as_the_mcap_records_them(
 
     # Same topics, schema names and encodings, message encodings and schema text as the file.
     assert session.subprotocol in SUBPROTOCOLS
+    # Level 2 is an error, e.g. "Unknown channel ID" for a subscription the server refused.
+    assert not [status for status in session.statuses if status.get("level") == 2], (
+        session.statuses
+    )
     assert set(session.advertised) == set(channels)
     for topic, advertised in session.advertised.items():
         channel, schema = channels[topic]

@@ -20,11 +20,12 @@ import errno
 import logging
 import os
 import socket
+import threading
 import time
 from dataclasses import dataclass, field
 
 import foxglove
-from foxglove.websocket import ChannelView, Client, ServerListener
+from foxglove.websocket import ChannelView, Client, ServerListener, WebSocketServer
 
 from ballbeam.errors import LiveViewError
 from ballbeam.logs.mcap_file import OpenChunk, chunk_messages
@@ -67,20 +68,24 @@ def _port_error(port: int, reason: str, code: int | None) -> LiveViewError:
 
 class _Subscriptions(ServerListener):
     """The server's listener: which channels (SDK ids) some client subscribes to. Called on the
-    server's threads; ``channels`` is replaced, never mutated, so a reader needs no lock."""
+    server's threads, concurrently; ``channels`` is replaced (under a lock, so that no update is
+    lost between two callbacks), never mutated, so the forwarding thread reads it lock-free."""
 
     def __init__(self) -> None:
+        self._lock = threading.Lock()
         self._pairs: set[tuple[int, int]] = set()  # (client id, channel id)
         self.channels: frozenset[int] = frozenset()
 
     def on_subscribe(self, client: Client, channel: ChannelView) -> None:
-        self._pairs.add((client.id, channel.id))
-        self.channels = frozenset(pair[1] for pair in self._pairs)
+        with self._lock:
+            self._pairs.add((client.id, channel.id))
+            self.channels = frozenset(pair[1] for pair in self._pairs)
 
     def on_unsubscribe(self, client: Client, channel: ChannelView) -> None:
         # Also called for each subscription of a client that disconnects.
-        self._pairs.discard((client.id, channel.id))
-        self.channels = frozenset(pair[1] for pair in self._pairs)
+        with self._lock:
+            self._pairs.discard((client.id, channel.id))
+            self.channels = frozenset(pair[1] for pair in self._pairs)
 
 
 @dataclass
@@ -94,20 +99,37 @@ class _Forwarded:
 
 
 class LiveView:
-    """The WebSocket server and the recorder's tap into it. ``stop()`` when the run is over."""
+    """The recorder's tap into a WebSocket server.
+
+    Made before the recorder (its port checked at once: a taken one fails fast), given the
+    log's channels by the recorder, then :meth:`start`-ed once every channel exists: a client
+    that subscribed to a channel advertised while it connected could be refused by the SDK
+    ("Unknown channel ID", seen in about one run in ten), so clients only ever connect to the
+    whole set. ``stop()`` when the run is over.
+    """
 
     def __init__(self, port: int = DEFAULT_LIVE_PORT, name: str = "ballbeam-hil") -> None:
-        # A private context: only the run's channels reach this server, whatever else in the
-        # process logs to Foxglove's global one.
+        check_port_free(port)
+        self.port = port
+        self.url = live_url(port)
+        self._name = name
         # The SDK logs its server's start and stop at INFO; the daemon says where to connect.
         logging.getLogger("foxglove").setLevel(logging.WARNING)
+        # A private context: only the run's channels reach this server, whatever else in the
+        # process logs to Foxglove's global one.
         self._context = foxglove.Context()
         self._subscriptions = _Subscriptions()
+        self._server: WebSocketServer | None = None
+        self._done = _Forwarded()
+        self._stopped = False
+
+    def start(self) -> None:
+        """Serve the channels added so far. LiveViewError if the port was taken meanwhile."""
         try:
             self._server = foxglove.start_server(
-                name=name,
+                name=self._name,
                 host=LIVE_HOST,
-                port=port,
+                port=self.port,
                 context=self._context,
                 server_listener=self._subscriptions,
                 message_backlog_size=BACKLOG_MESSAGES,
@@ -116,11 +138,7 @@ class LiveView:
             text = str(exc)
             code = errno.EADDRINUSE if "in use" in text else None
             reason = os.strerror(code) if code is not None else text
-            raise _port_error(port, reason, code) from exc
-        self.port: int = self._server.port
-        self.url = live_url(self.port)
-        self._done = _Forwarded()
-        self._stopped = False
+            raise _port_error(self.port, reason, code) from exc
 
     # ---- ChunkTap ---------------------------------------------------------------------------
 
@@ -176,7 +194,8 @@ class LiveView:
         self._stopped = True
         for channel in self._done.channel_ids.values():
             channel.close()
-        self._server.stop()
+        if self._server is not None:
+            self._server.stop()
 
 
 __all__ = [

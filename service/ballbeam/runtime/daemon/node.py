@@ -45,8 +45,7 @@ def run_daemon(
     if live_port is not None:
         from ballbeam.runtime.live import LiveView
 
-        live = LiveView(live_port)
-        log.info("live view on %s (Foxglove: Open connection, Foxglove WebSocket)", live.url)
+        live = LiveView(live_port)  # its port is checked now; it serves once channels exist
     try:
         return _run_recorded(config, log_path, config_path, live)
     finally:
@@ -97,9 +96,13 @@ def _run_recorded(
     stop = StopFlag().install()
     summary: dict[str, str] = {}
     try:
+        recording = RunRecording(recorder)  # every channel of the log, the live view's too
+        if live is not None:
+            live.start()
+            log.info("live view on %s (Foxglove: Open connection, Foxglove WebSocket)", live.url)
         bus = open_bus(config.bus)
         try:
-            daemon = ControllerDaemon(config, design, bus, contract, RunRecording(recorder), stop)
+            daemon = ControllerDaemon(config, design, bus, contract, recording, stop)
             settle_heap()
             try:
                 stats = daemon.run()
