@@ -35,6 +35,39 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _port(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a port number: {text!r}") from None
+    if not 1 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"a port is 1..65535, got {value}")
+    return value
+
+
+def _live_port(args: argparse.Namespace) -> int | None:
+    """The live view's port, or None without --live."""
+    from ballbeam.errors import ConfigError
+    from ballbeam.runtime.live import DEFAULT_LIVE_PORT
+
+    if not args.live:
+        if args.live_port is not None:
+            raise ConfigError("--live-port needs --live")
+        return None
+    return int(args.live_port) if args.live_port is not None else DEFAULT_LIVE_PORT
+
+
+def _add_live_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--live", action="store_true",
+        help="serve the run's channels live over Foxglove's WebSocket protocol (loopback only)",
+    )
+    parser.add_argument(
+        "--live-port", type=_port, default=None, metavar="PORT",
+        help="the live view's port on 127.0.0.1 (default: 8765, the Foxglove app's default)",
+    )
+
+
 def _json_ready(value: Any) -> Any:
     if isinstance(value, float) and not math.isfinite(value):
         return None
@@ -121,9 +154,10 @@ def command_daemon(args: argparse.Namespace) -> int:
 
     configure_logging()
     config = config_from_arguments(args)
+    live_port = _live_port(args)
     log_path = Path(args.log) if args.log else new_log_path(config.run.log_dir, config.plan.kind)
     try:
-        end_reason = run_daemon(config, log_path, args.config)
+        end_reason = run_daemon(config, log_path, args.config, live_port)
     except PlantLostError as error:
         print(f"ballbeam: error: {error}", file=sys.stderr)
         return EXIT_PLANT_LOST
@@ -149,7 +183,7 @@ def command_run(args: argparse.Namespace) -> int:
     from ballbeam.runtime.exit_codes import exit_code
     from ballbeam.runtime.launcher import launch_run
 
-    result = launch_run(args.config, args.overrides)
+    result = launch_run(args.config, args.overrides, live_port=_live_port(args))
     summary = summarise(read_log(result.log_path), result.config.limits.theta_rad)
     summary = {
         "mode": result.config.run.mode,
@@ -350,6 +384,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_config_arguments(run)
     run.add_argument("--json", action="store_true", help="print one JSON object")
+    _add_live_arguments(run)
     run.set_defaults(handler=command_run)
 
     daemon = commands.add_parser(
@@ -357,6 +392,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_config_arguments(daemon)
     daemon.add_argument("--log", metavar="MCAP", help="log file (default: a new one in logs/)")
+    _add_live_arguments(daemon)
     daemon.set_defaults(handler=command_daemon)
 
     replay = commands.add_parser("replay", help="analyse a recorded run; --verify re-runs it")

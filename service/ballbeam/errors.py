@@ -31,3 +31,7 @@ class LogFormatError(BallbeamError, ValueError):
 
 class RecorderError(BallbeamError, OSError):
     """The run recorder cannot write its log."""
+
+
+class LiveViewError(BallbeamError, OSError):
+    """The live view's WebSocket server cannot start (e.g. its port is taken)."""

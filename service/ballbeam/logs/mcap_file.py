@@ -25,7 +25,7 @@ import sys
 import tempfile
 import zlib
 from array import array
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import IO
 
@@ -57,6 +57,7 @@ _MESSAGE_INDEX_HEAD = struct.Struct("<BQHI")
 # opcode, record length, summary start, summary offset start; then the summary CRC
 _FOOTER_HEAD = struct.Struct("<BQQQ")
 _U32 = struct.Struct("<I")
+_RECORD_LENGTH = struct.Struct("<Q")
 _LITTLE_ENDIAN = sys.byteorder == "little"
 COMPRESSION = "zstd"
 
@@ -86,6 +87,28 @@ class OpenChunk:
     start_ns: int = 0
     end_ns: int = 0
     messages: int = 0
+
+
+def chunk_messages(
+    chunk: OpenChunk, channel_id: int, records: bytes | None = None
+) -> Iterator[tuple[int, bytes]]:
+    """The (log time, payload) of each message of one channel in a taken chunk, in order.
+
+    For a reader of the chunk before it is written (the live view): it walks the channel's
+    index entries instead of every record of the chunk. ``records`` is ``bytes(chunk.records)``
+    when the caller reads several channels of one chunk (one copy instead of one a channel),
+    so that each payload is one slice."""
+    pairs = chunk.index.get(channel_id)
+    if pairs is None:
+        return
+    if records is None:
+        records = bytes(chunk.records)
+    record_length = _RECORD_LENGTH.unpack_from
+    head = _MESSAGE_HEAD.size
+    # A record's length field counts the bytes after it: the payload ends at offset + 9 + it.
+    for log_time_ns, offset in zip(pairs[0::2], pairs[1::2], strict=True):
+        end = offset + 9 + record_length(records, offset + 1)[0]
+        yield log_time_ns, records[offset + head : end]
 
 
 class McapFile:

@@ -11,6 +11,10 @@ for the interpreter lock at every message.
 
 Header, metadata and attachments are written and flushed in the constructor, so a run that
 crashes still says what it was. ``close()`` adds final metadata and the summary section.
+
+A :class:`ChunkTap` (the live view, ``runtime/live.py``) sees every chunk the writer thread has
+written, with the same encoded messages and log times as the file: it costs the loop thread
+nothing, and a tap that fails is dropped without stopping the recording.
 """
 
 from __future__ import annotations
@@ -27,7 +31,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from importlib.metadata import PackageNotFoundError, version
 from types import TracebackType
-from typing import IO, Any
+from typing import IO, Any, Protocol
 
 import numpy as np
 from mcap.writer import LIBRARY_IDENTIFIER
@@ -55,6 +59,30 @@ class ChannelHandle:
     topic: str
     schema: StructSchema | None
     owner: object  # the recorder that issued it; a foreign handle is rejected, not misfiled
+
+
+class ChunkTap(Protocol):
+    """Sees the recording as the writer thread writes it (the live view).
+
+    ``add_channel`` is called once per channel, as it is registered (any thread that
+    registers); ``take`` with each chunk once it is written (the writer thread: it must not
+    block, and may read the chunk with :func:`~ballbeam.logs.mcap_file.chunk_messages` until it
+    returns); ``stats`` at close, for the "live" metadata record.
+    """
+
+    def add_channel(
+        self,
+        channel_id: int,
+        topic: str,
+        message_encoding: str,
+        schema_name: str,
+        schema_encoding: str,
+        schema_data: bytes,
+    ) -> None: ...
+
+    def take(self, chunk: OpenChunk) -> None: ...
+
+    def stats(self) -> dict[str, str]: ...
 
 
 def _json_default(obj: object) -> Any:
@@ -133,6 +161,7 @@ class Recorder:
         queue_size: int = 65_536,
         flush_interval_s: float = 0.03,  # a killed run loses at most about this much log
         chunk_size_bytes: int = 1 << 20,
+        tap: ChunkTap | None = None,
     ) -> None:
         if queue_size < 1:
             raise ValueError("queue_size must be at least 1")
@@ -199,6 +228,8 @@ class Recorder:
         self._first_rejection: str | None = None
         self._schema_ids: dict[tuple[str, str, bytes], int] = {}
         self._topics: set[str] = set()
+        self._tap = tap
+        self._tap_error: str | None = None
         self._thread = threading.Thread(
             target=self._run, name=f"recorder {os.path.basename(self.path)}", daemon=True
         )
@@ -245,7 +276,18 @@ class Recorder:
                     f"cannot write log {self.path}: {_os_reason(exc)}", exc
                 ) from exc
             self._topics.add(topic)
+            if self._tap is not None:
+                try:
+                    self._tap.add_channel(
+                        channel_id, topic, encoding, schema_name, schema_encoding, data
+                    )
+                except Exception as exc:  # the live view must never stop the recording
+                    self._drop_tap(exc)
             return channel_id
+
+    def _drop_tap(self, exc: BaseException) -> None:
+        self._tap_error = f"{type(exc).__name__}: {exc}"
+        self._tap = None
 
     # ---- hot path ---------------------------------------------------------------------------
 
@@ -310,6 +352,12 @@ class Recorder:
                         self._taken.popleft()
                         self._buffered -= chunk.messages
                         self._written += chunk.messages
+                    tap = self._tap
+                    if tap is not None:
+                        try:
+                            tap.take(chunk)
+                        except Exception as exc:  # never stops the recording
+                            self._drop_tap(exc)
                 with self._stream_lock:
                     self._stream.flush()  # hand the chunk to the OS: a killed run keeps it
                 if stopping:
@@ -386,6 +434,16 @@ class Recorder:
                     if self._first_rejection is not None:
                         counts["first_rejection"] = self._first_rejection
                     self._file.add_metadata("recorder", counts)
+                    if self._tap is not None or self._tap_error is not None:
+                        live: dict[str, str] = {}
+                        if self._tap is not None:
+                            try:
+                                live = self._tap.stats()
+                            except Exception as exc:
+                                self._drop_tap(exc)
+                        if self._tap_error is not None:
+                            live["failed"] = self._tap_error
+                        self._file.add_metadata("live", _check_str_map("live", live))
                     self._file.finish()
                     self._stream.flush()
                 except OSError as exc:
@@ -428,6 +486,7 @@ __all__ = [
     "LIBRARY",
     "PROFILE",
     "ChannelHandle",
+    "ChunkTap",
     "Recorder",
     "encode_json",
 ]

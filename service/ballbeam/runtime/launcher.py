@@ -86,10 +86,24 @@ def launch_run(
     config_path: str | None,
     overrides: list[str],
     on_started: Callable[[dict[str, subprocess.Popen[str]]], None] | None = None,
+    live_port: int | None = None,
 ) -> LaunchResult:
-    """Run one scenario; ``on_started`` gets both processes (benchmarks watch their memory)."""
+    """Run one scenario; ``on_started`` gets both processes (benchmarks watch their memory).
+    With ``live_port`` the daemon serves the run live on that loopback port (``--live``)."""
     config = load_config(config_path, overrides)
     check_stays_on_host(config.bus)
+    live_args: list[str] = []
+    if live_port is not None:
+        from ballbeam.runtime.live import check_port_free, live_url
+
+        check_port_free(live_port)  # a taken port: one line and exit 2, nothing started
+        live_args = ["--live", "--live-port", str(live_port)]
+        print(
+            f"live view on {live_url(live_port)} while the run goes "
+            "(Foxglove: Open connection, Foxglove WebSocket)",
+            file=sys.stderr,
+            flush=True,
+        )
     child_overrides = list(overrides)
     if config.bus.interface == "udp_multicast" and config.bus.isolate_runs:
         # Group and port both: open_bus makes its sockets hear their own group only, and a
@@ -121,7 +135,7 @@ def launch_run(
             env={**os.environ, PEER_LINK_ENV: str(link_read)},
         )
         daemon = subprocess.Popen(
-            [*base, "ballbeam", "daemon", *config_args, "--log", str(log_path)],
+            [*base, "ballbeam", "daemon", *config_args, "--log", str(log_path), *live_args],
             stdout=subprocess.DEVNULL,
             stderr=subprocess.PIPE,
             text=True,

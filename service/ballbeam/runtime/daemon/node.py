@@ -8,6 +8,7 @@ import json
 import logging
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ballbeam.assembly import controller_design
 from ballbeam.config import Config
@@ -26,6 +27,9 @@ from ballbeam.runtime.process import (
 )
 from ballbeam.runtime.stop import StopFlag
 from ballbeam.runtime.ticker import worst_lateness_ns
+
+if TYPE_CHECKING:
+    from ballbeam.runtime.live import LiveView
 
 log = logging.getLogger("ballbeam")
 
@@ -64,9 +68,29 @@ def with_measured_latency(config: Config) -> tuple[Config, dict[str, str]]:
     return config, probe
 
 
-def run_daemon(config: Config, log_path: Path, config_path: str | None) -> str:
+def run_daemon(
+    config: Config, log_path: Path, config_path: str | None, live_port: int | None = None
+) -> str:
     """Plan, synthesise, open the recorder and the bus, run, finish the file. Returns how the
-    run ended (``DaemonStats.end_reason``); PlantLostError if no plant answered at the start."""
+    run ended (``DaemonStats.end_reason``); PlantLostError if no plant answered at the start.
+
+    With ``live_port``, the run is also served live on ``ws://127.0.0.1:<live_port>``
+    (``runtime/live.py``); LiveViewError, before anything else, if the port is taken."""
+    live = None
+    if live_port is not None:
+        from ballbeam.runtime.live import LiveView
+
+        live = LiveView(live_port)  # its port is checked now; it serves once channels exist
+    try:
+        return _run_recorded(config, log_path, config_path, live)
+    finally:
+        if live is not None:
+            live.stop()
+
+
+def _run_recorded(
+    config: Config, log_path: Path, config_path: str | None, live: LiveView | None
+) -> str:
     design = controller_design(config)  # before touching the bus: a bad config fails fast
     # The recorder's writer thread shares the GIL; switching sooner bounds how long it can
     # hold up the control loop's wake-up (measured: p99 lateness roughly halved).
@@ -107,13 +131,18 @@ def run_daemon(config: Config, log_path: Path, config_path: str | None) -> str:
             },
         },
         attachments=attachments,
+        tap=live,
     )
     stop = StopFlag().install()
     summary: dict[str, str] = {}
     try:
+        recording = RunRecording(recorder)  # every channel of the log, the live view's too
+        if live is not None:
+            live.start()
+            log.info("live view on %s (Foxglove: Open connection, Foxglove WebSocket)", live.url)
         bus = open_bus(config.bus)
         try:
-            daemon = ControllerDaemon(config, design, bus, contract, RunRecording(recorder), stop)
+            daemon = ControllerDaemon(config, design, bus, contract, recording, stop)
             settle_heap()
             try:
                 stats = daemon.run()

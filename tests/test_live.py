@@ -1,0 +1,247 @@
+"""The live view (``--live``): a run served over Foxglove's WebSocket protocol while it goes.
+
+The client here is not the project's code: ``websockets`` speaking the protocol as written in
+Foxglove's spec (subprotocol, advertise, subscribe, binary message data), and Foxglove's own
+ROS 2 CDR decoder (mcap-ros2-support) for the payloads. The answer it is held to is the same
+run's MCAP, read with the official mcap reader.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import io
+import json
+import socket
+import struct
+import subprocess
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pytest
+from mcap.reader import make_reader
+
+from ballbeam.logs.mcap_file import OpenChunk
+from ballbeam.logs.recorder import Recorder
+from ballbeam.logs.schema import StructSchema
+
+from .conftest import PAPER, REPO, ballbeam, ballbeam_argv
+
+websockets = pytest.importorskip("websockets")
+decoder_module = pytest.importorskip("mcap_ros2.decoder")
+dynamic = pytest.importorskip("mcap_ros2._dynamic")
+
+# The SDK's current subprotocol first, the spec's original name second: the server picks one.
+SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
+MESSAGE_DATA = 0x01  # binary opcode: subscription id (u32), log time (u64), payload
+MESSAGE_HEAD = struct.Struct("<BIQ")
+WATCHED = ("/truth", "/command")
+RUN_S = 2.0
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+@dataclass
+class Session:
+    """What the client saw: the server's channels and each subscribed message."""
+
+    advertised: dict[str, dict[str, Any]] = field(default_factory=dict)
+    received: dict[str, list[tuple[int, bytes]]] = field(default_factory=dict)
+    subprotocol: str | None = None
+    statuses: list[dict[str, Any]] = field(default_factory=list)
+
+
+async def watch(port: int, process: subprocess.Popen[str], give_up_s: float) -> Session:
+    """Connect as soon as the server is up, subscribe to WATCHED, read until it goes away."""
+    session = Session()
+    deadline = time.monotonic() + give_up_s
+    while True:
+        try:
+            connection = await websockets.connect(
+                f"ws://127.0.0.1:{port}", subprotocols=SUBPROTOCOLS, max_size=None
+            )
+            break
+        except OSError:
+            if process.poll() is not None or time.monotonic() > deadline:
+                raise AssertionError("the live server never accepted a connection") from None
+            await asyncio.sleep(0.02)
+    session.subprotocol = connection.subprotocol
+    by_subscription: dict[int, str] = {}
+    async with connection:
+        try:
+            async for frame in connection:
+                if isinstance(frame, str):
+                    message = json.loads(frame)
+                    if message["op"] == "status":
+                        session.statuses.append(message)
+                    if message["op"] != "advertise":
+                        continue
+                    wanted = []
+                    for channel in message["channels"]:
+                        session.advertised[channel["topic"]] = channel
+                        if channel["topic"] in WATCHED:
+                            subscription = len(by_subscription) + 1
+                            by_subscription[subscription] = channel["topic"]
+                            wanted.append({"id": subscription, "channelId": channel["id"]})
+                    if wanted:
+                        await connection.send(
+                            json.dumps({"op": "subscribe", "subscriptions": wanted})
+                        )
+                elif frame[0] == MESSAGE_DATA:
+                    _, subscription, log_time_ns = MESSAGE_HEAD.unpack_from(frame)
+                    topic = by_subscription[subscription]
+                    payload = bytes(frame[MESSAGE_HEAD.size :])
+                    session.received.setdefault(topic, []).append((log_time_ns, payload))
+        except websockets.ConnectionClosed:
+            pass  # the run is over: the daemon stopped its server
+    return session
+
+
+def read_mcap(path: Path) -> tuple[dict[str, Any], dict[str, list[tuple[int, Any]]]]:
+    """The log's channels (topic → channel, schema) and the WATCHED messages, decoded."""
+    with path.open("rb") as stream:
+        reader = make_reader(stream, decoder_factories=[decoder_module.DecoderFactory()])
+        summary = reader.get_summary()
+        assert summary is not None
+        channels = {
+            channel.topic: (channel, summary.schemas[channel.schema_id])
+            for channel in summary.channels.values()
+        }
+        decoded: dict[str, list[tuple[int, Any]]] = {topic: [] for topic in WATCHED}
+        for _, channel, message, value in reader.iter_decoded_messages(topics=list(WATCHED)):
+            decoded[channel.topic].append((message.log_time, value))
+    return channels, decoded
+
+
+def fields_of(value: Any) -> dict[str, Any]:
+    return {name: getattr(value, name) for name in value.__slots__}
+
+
+@pytest.mark.bus
+def test_a_websocket_client_sees_the_runs_messages_as_the_mcap_records_them(
+    tmp_path: Path,
+) -> None:
+    port = free_port()
+    process = subprocess.Popen(
+        [
+            *ballbeam_argv("run", str(PAPER), "--live", "--live-port", str(port), "--json"),
+            "--set", f"run.log_dir='{tmp_path}'", "--set", f"run.duration_s={RUN_S}",
+        ],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        session = asyncio.run(watch(port, process, give_up_s=120.0))
+        stdout, stderr = process.communicate(timeout=300)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.communicate()
+    assert process.returncode == 0, stderr
+    assert f"ws://127.0.0.1:{port}" in stderr  # run says where to connect
+    summary = json.loads(stdout)
+    assert summary["mode"] == "lockstep"
+    channels, recorded = read_mcap(Path(summary["log_path"]))
+
+    # Same topics, schema names and encodings, message encodings and schema text as the file.
+    assert session.subprotocol in SUBPROTOCOLS
+    # Level 2 is an error, e.g. "Unknown channel ID" for a subscription the server refused.
+    assert not [status for status in session.statuses if status.get("level") == 2], (
+        session.statuses
+    )
+    assert set(session.advertised) == set(channels)
+    for topic, advertised in session.advertised.items():
+        channel, schema = channels[topic]
+        assert advertised["encoding"] == channel.message_encoding, topic
+        assert advertised["schemaName"] == schema.name, topic
+        assert advertised["schemaEncoding"] == schema.encoding, topic
+        assert advertised["schema"] == schema.data.decode(), topic
+
+    for topic in WATCHED:
+        received = session.received.get(topic, [])
+        expected = recorded[topic]
+        assert len(expected) >= RUN_S * 1000 * 0.99, topic
+        # Live means while it goes, not afterwards: most of the run came through (a client
+        # that falls behind loses its oldest messages rather than slowing the run).
+        assert len(received) >= 0.5 * len(expected), (topic, len(received), len(expected))
+        advertised = session.advertised[topic]
+        decode = dynamic.generate_dynamic(advertised["schemaName"], advertised["schema"])[
+            advertised["schemaName"]
+        ]
+        # Every received message is the file's message with the same log time and values,
+        # in the file's order.
+        position = 0
+        for log_time_ns, payload in received:
+            while position < len(expected) and expected[position][0] != log_time_ns:
+                position += 1
+            assert position < len(expected), (topic, log_time_ns, "not in the log, or out of order")
+            assert fields_of(decode(payload)) == fields_of(expected[position][1]), (
+                topic, log_time_ns
+            )
+            position += 1
+    truth_values = [fields_of(decode_value) for _, decode_value in recorded["/truth"][:1]]
+    assert truth_values and truth_values[0]["ball_position_m"] > 0.19  # the paper's start
+
+
+def test_a_taken_port_is_one_line_and_exit_2() -> None:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as holder:
+        holder.bind(("127.0.0.1", 0))
+        holder.listen()
+        port = holder.getsockname()[1]
+        for command in ("run", "daemon"):
+            result = ballbeam(command, "--live", "--live-port", str(port), timeout_s=120)
+            assert result.returncode == 2, (command, result.stderr)
+            lines = result.stderr.strip().splitlines()
+            assert len(lines) == 1, (command, result.stderr)
+            assert f"ws://127.0.0.1:{port}" in lines[0]
+            assert "already in use" in lines[0]
+            assert "Traceback" not in result.stderr
+
+
+def test_live_port_without_live_is_refused() -> None:
+    result = ballbeam("daemon", "--live-port", "9000", timeout_s=120)
+    assert result.returncode == 2
+    assert result.stderr.strip() == "ballbeam: error: --live-port needs --live"
+
+
+class _FailingTap:
+    """A tap that fails on its first chunk: the recording must go on without it."""
+
+    def __init__(self) -> None:
+        self.channels: list[str] = []
+
+    def add_channel(
+        self, channel_id: int, topic: str, message_encoding: str, schema_name: str,
+        schema_encoding: str, schema_data: bytes,
+    ) -> None:
+        self.channels.append(topic)
+
+    def take(self, chunk: OpenChunk) -> None:
+        raise RuntimeError("viewer gone")
+
+    def stats(self) -> dict[str, str]:
+        return {}
+
+
+def test_a_failing_tap_never_stops_the_recording() -> None:
+    schema = StructSchema("test/Value", (("value", "float64"),))
+    buffer = io.BytesIO()
+    tap = _FailingTap()
+    with Recorder(buffer, tap=tap, flush_interval_s=0.001) as recorder:
+        handle = recorder.add_struct_channel("/value", schema)
+        for index in range(2_000):
+            recorder.record(handle, 1_000 + index, (float(index),))
+            if index == 1_000:
+                time.sleep(0.02)  # let the writer take a chunk (and the tap fail) mid-run
+    assert tap.channels == ["/value"]
+    reader = make_reader(io.BytesIO(buffer.getvalue()))
+    assert sum(1 for _ in reader.iter_messages()) == 2_000
+    live = {record.name: record.metadata for record in reader.iter_metadata()}["live"]
+    assert live["failed"] == "RuntimeError: viewer gone"
