@@ -10,7 +10,13 @@ from scipy.integrate import solve_ivp
 
 from ballbeam.assembly import controller_design
 from ballbeam.config import load_config
-from ballbeam.core.guard import AngleGuard, guarded_voltage, soft_cap_v, stopping_distance_rad
+from ballbeam.core.guard import (
+    AngleGuard,
+    guarded_voltage,
+    make_soft_cap,
+    soft_cap_v,
+    stopping_distance_rad,
+)
 from ballbeam.core.model import PhysicalConstants
 
 CONSTANTS = PhysicalConstants()
@@ -112,3 +118,40 @@ def test_soft_cap_follows_the_braking_curve_and_stops_at_its_limit(guard: AngleG
     assert theta == pytest.approx(soft.theta_limit_rad, abs=math.radians(0.01))
     flips = np.count_nonzero(np.diff(np.sign(np.array(caps)[np.abs(caps) > 0.05])))
     assert flips <= 2
+
+
+@pytest.mark.parametrize("reaction_s", [0.0, 0.005])
+def test_the_soft_caps_allowed_rate_runs_on_for_the_reaction_time_then_brakes_to_the_limit(
+    reaction_s: float,
+) -> None:
+    """A late loop (the daemon's probe raised its latency allowance): from the allowed rate,
+    running on for t_r and then braking at V_soft, the servo stops exactly at θ_s. Checked by
+    integrating the motor model (solve_ivp) from the table's rates, not with the table's own
+    formula."""
+    constants = PhysicalConstants()
+    alpha, alpha_beta, brake_v = constants.alpha, constants.alpha * constants.beta, 4.75
+    soft = make_soft_cap(
+        theta_limit_rad=0.9, alpha=alpha, alpha_beta=alpha_beta, brake_v=brake_v,
+        zone_gain_per_s=250.0, rate_gain_per_s=40.0, reaction_s=reaction_s,
+    )
+
+    def braking(_t: float, state: np.ndarray) -> list[float]:
+        return [state[1], -alpha_beta * state[1] - alpha * brake_v]
+
+    def stopped(_t: float, state: np.ndarray) -> float:
+        return float(state[1])
+
+    stopped.terminal = True  # type: ignore[attr-defined]
+    for index in (40, 120, 200):
+        gap = index * soft.gap_step_rad
+        rate = soft.allowed_rate_rad_s[index]
+        travel = solve_ivp(braking, (0.0, 5.0), [0.0, rate], events=stopped, rtol=1e-10,
+                           atol=1e-12).y_events[0][0][0]
+        assert rate * reaction_s + travel == pytest.approx(gap, rel=1e-6)
+    if reaction_s:
+        plain = make_soft_cap(
+            theta_limit_rad=0.9, alpha=alpha, alpha_beta=alpha_beta, brake_v=brake_v,
+            zone_gain_per_s=250.0, rate_gain_per_s=40.0,
+        )
+        assert all(late < prompt for late, prompt in
+                   zip(soft.allowed_rate_rad_s[1:], plain.allowed_rate_rad_s[1:], strict=True))

@@ -281,6 +281,9 @@ def _angle_guard(config: Config, model: LinearModel) -> AngleGuard:
             brake_v=controller.soft_guard_brake_v,
             zone_gain_per_s=controller.soft_guard_zone_gain_per_s,
             rate_gain_per_s=controller.soft_guard_rate_gain_per_s,
+            # Latency allowed beyond one period (a late loop, as its probe measured it): the
+            # servo may run on that long before a braking command lands.
+            reaction_s=max(latency_s - controller.period_s, 0.0),
         )
     return make_angle_guard(
         theta_limit_rad=math.radians(

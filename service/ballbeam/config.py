@@ -227,6 +227,12 @@ class ObserverSection(_Section):
         return levels
 
 
+def _none_is_normal_scheduling(value: object) -> object:
+    """Logs recorded before real time defaulted to SCHED_FIFO have ``realtime_priority: null``
+    (no real-time scheduling): read as 0, its meaning today."""
+    return 0 if value is None else value
+
+
 class ControllerSection(_Section):
     rate_hz: int = Field(1000, ge=10, le=20000)
     sensor_timeout_periods: int = Field(
@@ -263,7 +269,7 @@ class ControllerSection(_Section):
         "allowance becomes it plus one period (0: no probe)"
     )
     max_guard_latency_us: int = Field(
-        10_000, ge=0, le=100_000, description="real time: the most the probe may raise the "
+        30_000, ge=0, le=100_000, description="real time: the most the probe may raise the "
         "guard's latency allowance to"
     )
     theta_guard_brake_v: float | None = Field(
@@ -337,6 +343,9 @@ class ControllerSection(_Section):
         45, ge=0, le=99, description="real time: SCHED_FIFO priority for the daemon, where "
         "permitted (0: normal scheduling); below the kernel's interrupt threads (50)"
     )
+    _old_priority = field_validator("realtime_priority", mode="before")(
+        _none_is_normal_scheduling
+    )
 
     @property
     def period_ns(self) -> int:
@@ -376,6 +385,9 @@ class PlantSection(_Section):
     realtime_priority: int = Field(
         44, ge=0, le=99, description="real time: SCHED_FIFO priority for the emulator, where "
         "permitted (0: normal scheduling)"
+    )
+    _old_priority = field_validator("realtime_priority", mode="before")(
+        _none_is_normal_scheduling
     )
     command_loss: float = Field(0.0, ge=0, lt=1, description="fault injection: drop fraction")
     sensor_loss: float = Field(0.0, ge=0, lt=1, description="fault injection: drop fraction")

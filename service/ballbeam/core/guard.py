@@ -130,14 +130,20 @@ def make_soft_cap(
     brake_v: float,
     zone_gain_per_s: float,
     rate_gain_per_s: float,
+    reaction_s: float = 0.0,
 ) -> SoftCap:
-    """The soft cap at ±``theta_limit_rad``: ω_a(gap) solves d(ω) = gap on a uniform gap grid
-    (d is increasing: by bisection here, at design time)."""
+    """The soft cap at ±``theta_limit_rad``: ω_a(gap) solves ω·t_r + d(ω) = gap on a uniform
+    gap grid (increasing in ω: by bisection here, at design time). ``reaction_s`` (t_r): how
+    long a command may come late beyond the period, the servo running on meanwhile; 0 on a
+    loop that keeps time."""
     gap_step = 2.0 * theta_limit_rad / (ALLOWED_RATE_POINTS - 1)
     gaps = np.arange(ALLOWED_RATE_POINTS) * gap_step
 
     def distance(rate: np.ndarray) -> np.ndarray:
-        return exact_stopping_distance_rad(alpha, alpha_beta, brake_v, rate)
+        travelled: np.ndarray = rate * reaction_s + exact_stopping_distance_rad(
+            alpha, alpha_beta, brake_v, rate
+        )
+        return travelled
 
     low, high = np.zeros_like(gaps), np.ones_like(gaps)
     while np.any(short := distance(high) < gaps):
