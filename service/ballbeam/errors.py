@@ -31,3 +31,7 @@ class LogFormatError(BallbeamError, ValueError):
 
 class RecorderError(BallbeamError, OSError):
     """The run recorder cannot write its log."""
+
+
+class ClusterError(BallbeamError, ConnectionError):
+    """The Dask cluster a study runs on cannot be started or reached."""
