@@ -312,7 +312,9 @@ def command_regress(args: argparse.Namespace) -> int:
 
 def _scheduler_address(text: str) -> str:
     if not text.startswith(("tcp://", "tls://", "inproc://", "ucx://")) or len(text) < 8:
-        raise argparse.ArgumentTypeError(f"not a Dask scheduler address (tcp://HOST:PORT): {text!r}")
+        raise argparse.ArgumentTypeError(
+            f"not a Dask scheduler address (tcp://HOST:PORT): {text!r}"
+        )
     return text
 
 
@@ -327,10 +329,13 @@ def command_sweep(args: argparse.Namespace) -> int:
     output = Path(args.output) if args.output else (
         spec.output or Path("sweep-results") / spec.path.stem
     )
-    with dask_client(args.scheduler, args.workers) as client:
-        outcome = run_sweep(
-            spec, output, client, retry_failed=args.retry_failed, progress=not args.json
-        )
+    outcome = run_sweep(
+        spec,
+        output,
+        lambda: dask_client(args.scheduler, args.workers),
+        retry_failed=args.retry_failed,
+        progress=not args.json,
+    )
     metrics = metric_columns(outcome.table, spec)
     plots = [] if args.no_plots else plot_sweep(outcome.table, spec, metrics, output / "plots")
     report = {

@@ -10,12 +10,14 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import socket
 from collections.abc import Iterator
 from typing import Any
 
 from ballbeam.errors import ClusterError, ConfigError
 
 CONNECT_TIMEOUT_S = 20
+PROBE_TIMEOUT_S = 5
 
 
 def default_workers() -> int:
@@ -35,6 +37,21 @@ def import_studies_extra() -> None:
         ) from error
 
 
+def _probe(address: str) -> None:
+    """Refused at once instead of after the client's whole retry timeout: a TCP scheduler that
+    nothing listens on."""
+    scheme, _, rest = address.partition("://")
+    host, _, port = rest.rpartition(":")
+    if scheme != "tcp" or not port.isdigit():
+        return  # other transports: the client says
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=PROBE_TIMEOUT_S).close()
+    except OSError as error:
+        raise ClusterError(
+            f"cannot reach the Dask scheduler {address}: {error.strerror or error}"
+        ) from error
+
+
 @contextlib.contextmanager
 def dask_client(scheduler: str | None, workers: int | None = None) -> Iterator[Any]:
     """A connected ``distributed.Client``; an embedded cluster is closed on the way out."""
@@ -45,6 +62,7 @@ def dask_client(scheduler: str | None, workers: int | None = None) -> Iterator[A
         if workers is not None:
             raise ConfigError("--workers sizes the embedded cluster; with --scheduler the "
                               "cluster's own workers run the points")
+        _probe(scheduler)
         try:
             client = Client(scheduler, timeout=f"{CONNECT_TIMEOUT_S}s")
         except (OSError, TimeoutError, ValueError) as error:

@@ -8,6 +8,7 @@ from __future__ import annotations
 import sys
 import time
 from collections.abc import Callable, Sequence
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -102,7 +103,7 @@ def run_points(
 def run_sweep(
     spec: SweepSpec,
     output: Path,
-    client: Any,
+    connect: Callable[[], AbstractContextManager[Any]],
     *,
     retry_failed: bool = False,
     progress: bool = True,
@@ -128,7 +129,11 @@ def run_sweep(
     from ballbeam.studies.cluster import worker_count
 
     skipped = len(pairs) - len(todo)
-    run_points(client, list(todo.values()), spec.runner, keep, progress, spec.path.stem)
+    workers = 0
+    if todo:  # a finished sweep run again only rewrites its table: no cluster to start
+        with connect() as client:
+            workers = worker_count(client)
+            run_points(client, list(todo.values()), spec.runner, keep, progress, spec.path.stem)
     table = results_table(spec, pairs, records)
     table_path = output / TABLE_NAME
     table.to_parquet(table_path, index=False)
@@ -140,7 +145,7 @@ def run_sweep(
         ran=len(todo),
         failed=int(table["error"].notna().sum()),
         wall_time_s=time.monotonic() - started,
-        workers=worker_count(client),
+        workers=workers,
     )
 
 

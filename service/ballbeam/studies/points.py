@@ -69,8 +69,8 @@ _MINIMUM_TIMES = _LeastRecentlyUsed(4 * DESIGN_CACHE_SIZE)
 
 def warm_up() -> str:
     """Import what a point needs (once per worker, before the clock starts)."""
-    import ballbeam.assembly  # noqa: F401
-    import ballbeam.core.planning.time_optimal  # noqa: F401
+    import ballbeam.assembly
+    import ballbeam.core.planning.time_optimal
     import ballbeam.evaluation.summary  # noqa: F401
 
     return f"{socket.gethostname()}:{os.getpid()}"

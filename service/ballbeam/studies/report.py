@@ -34,7 +34,7 @@ def summary_text(table: Any, metrics: list[str], *, title: str) -> str:
     """Per metric: how many points have it, min, p10, median, p90, max."""
     ordered = [m for m in HEADLINE if m in metrics] + [m for m in metrics if m not in HEADLINE]
     header = ("metric", "n", "min", "p10", "median", "p90", "max")
-    rows = []
+    rows: list[tuple[str, ...]] = []
     for metric in ordered:
         values = table[metric].to_numpy(dtype=float)
         values = values[np.isfinite(values)]
@@ -77,6 +77,7 @@ def plot_sweep(table: Any, spec: SweepSpec, metrics: list[str], directory: Path)
 
     directory.mkdir(parents=True, exist_ok=True)
     ok = table[table["error"].isna()]
+    metrics = [m for m in HEADLINE if m in metrics] + [m for m in metrics if m not in HEADLINE]
     drawn = [m for m in metrics if np.isfinite(ok[m].to_numpy(dtype=float)).any()]
     written: list[Path] = []
     if not drawn or ok.empty:
