@@ -367,6 +367,42 @@ def command_sweep(args: argparse.Namespace) -> int:
     return 0
 
 
+def command_tune(args: argparse.Namespace) -> int:
+    from ballbeam.studies.cluster import dask_client, import_studies_extra
+    from ballbeam.studies.tune import load_tune_spec, markdown_table, run_tune
+
+    spec = load_tune_spec(args.spec)
+    import_studies_extra()
+    output = Path(args.output) if args.output else (
+        spec.output or Path("sweep-results") / spec.path.stem
+    )
+    with dask_client(args.scheduler, args.workers) as client:
+        outcome = run_tune(spec, output, client, progress=not args.json)
+    report = {
+        "spec": str(spec.path),
+        "trials": spec.trials,
+        "best_trial": outcome.best_trial,
+        "default": outcome.default_params,
+        "tuned": outcome.best_params,
+        "tuned_config": str(outcome.tuned_path),
+        "holdout_worst_improvement": outcome.holdout_improvement,
+        "before_after": outcome.table,
+    }
+    if args.json:
+        print_json(report)
+        return 0
+    print(f"tuned in {spec.trials} trials (best: trial {outcome.best_trial}); "
+          f"{spec.objective} {spec.metric} over {len(spec.train.points())} tuning runs, "
+          f"verdict on {len(spec.holdout.points())} held-out runs")
+    print(markdown_table(outcome.table))
+    print(f"held-out worst {spec.metric}: {100 * outcome.holdout_improvement:+.1f} % "
+          "better than the default" if outcome.holdout_improvement >= 0 else
+          f"held-out worst {spec.metric}: {100 * -outcome.holdout_improvement:.1f} % worse "
+          "than the default")
+    print(f"tuned config: {outcome.tuned_path}")
+    return 0
+
+
 def command_configs(args: argparse.Namespace) -> int:
     from ballbeam.config import resolve_config_path, shipped_configs
 
@@ -496,6 +532,17 @@ def build_parser() -> argparse.ArgumentParser:
     sweep.add_argument("--no-plots", action="store_true", help="write the table only")
     sweep.add_argument("--json", action="store_true", help="print one JSON object, no bar")
     sweep.set_defaults(handler=command_sweep)
+
+    tune = commands.add_parser(
+        "tune", help="choose tracker, observer and plan keys for a robust objective (Optuna)"
+    )
+    tune.add_argument("spec", metavar="SPEC.toml", help="tuning spec (or a shipped one, "
+                      "e.g. sweeps/tune_robust_rest)")
+    tune.add_argument("--output", metavar="DIR", help="results directory (default: the spec's "
+                      "tune.output, else sweep-results/<spec name>)")
+    _add_cluster_arguments(tune)
+    tune.add_argument("--json", action="store_true", help="print one JSON object, no bar")
+    tune.set_defaults(handler=command_tune)
 
     configs = commands.add_parser(
         "configs", help="list the configs shipped with the package, or print one"
