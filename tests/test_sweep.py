@@ -31,7 +31,8 @@ from .conftest import CONFIGS, PAPER, ballbeam
 
 pd = pytest.importorskip("pandas")
 
-SWEEPS = sorted((CONFIGS / "sweeps").glob("*.toml"))
+SWEEPS = sorted(set((CONFIGS / "sweeps").glob("*.toml")) - set((CONFIGS / "sweeps").glob("tune_*")))
+TUNINGS = sorted((CONFIGS / "sweeps").glob("tune_*.toml"))
 # Short runs: what is checked is that a point gives what it gives alone, not its control.
 SMALL_SPEC = f"""
 [sweep]
@@ -74,6 +75,20 @@ def test_every_shipped_sweep_spec_loads_and_its_points_validate(path: Path) -> N
     assert points
     for point in points[:: max(1, len(points) // 10)]:
         load_config(spec.base, point.overrides)
+
+
+@pytest.mark.parametrize("path", TUNINGS, ids=[path.stem for path in TUNINGS])
+def test_every_shipped_tuning_spec_loads(path: Path) -> None:
+    from ballbeam.studies.tune import defaults, load_tune_spec, overrides_for
+
+    spec = load_tune_spec(path)
+    assert spec.train.points() and spec.holdout.points()
+    held_out = {point.overrides for point in spec.holdout.points()}
+    assert not held_out & {point.overrides for point in spec.train.points()}
+    # The base's own values, set back, give the base's config.
+    keys = overrides_for(spec, defaults(spec))
+    sets = [f"{key}={value!r}".replace("(", "[").replace(")", "]") for key, value in keys.items()]
+    assert load_config(spec.base, sets) == load_config(spec.base)
 
 
 def test_the_monte_carlo_example_is_200_points_drawn_in_range() -> None:
@@ -205,7 +220,7 @@ def dask_processes(tmp_path: Path) -> Iterator[str]:
 
     try:
         start("scheduler", "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
-              "--scheduler-file", str(scheduler_file))
+              "--dashboard-address", "127.0.0.1:0", "--scheduler-file", str(scheduler_file))
         deadline = time.monotonic() + 60
         while not scheduler_file.exists() and time.monotonic() < deadline:
             time.sleep(0.1)
@@ -214,7 +229,8 @@ def dask_processes(tmp_path: Path) -> Iterator[str]:
         assert address.startswith("tcp://127.0.0.1:")
         for index in range(2):
             start(f"worker{index}", "worker", address, "--host", "127.0.0.1", "--nthreads", "1",
-                  "--nworkers", "1", "--no-dashboard", "--name", f"w{index}")
+                  "--nworkers", "1", "--no-dashboard", "--dashboard-address", "127.0.0.1:0",
+                  "--name", f"w{index}")
         from distributed import Client
 
         with Client(address, timeout="30s") as client:
@@ -291,3 +307,28 @@ seeds = [3]
         for metric in ("rest_ratio", "settle_time_s", "input_tv_ratio", "max_abs_theta_deg",
                        "largest_step_v", "max_abs_u_v", "dither_hz"):
             assert_row_is(row, {metric: summary[metric]})
+
+
+# --- the core import stays light ----------------------------------------------------------------
+
+HEAVY = ("dask", "distributed", "pandas", "pyarrow", "optuna")
+
+
+def test_only_the_studies_package_imports_dask_pandas_or_optuna() -> None:
+    from .test_architecture import PACKAGE, imports_of
+
+    for path in sorted(PACKAGE.rglob("*.py")):
+        if "studies" in path.relative_to(PACKAGE).parts:
+            continue
+        heavy = {name for name in imports_of(path) if name.split(".")[0] in HEAVY}
+        assert not heavy, f"{path} imports {heavy}"
+
+
+def test_the_command_line_loads_without_them() -> None:
+    probe = (
+        "import sys, ballbeam.cli, ballbeam.assembly, ballbeam.studies.spec;"
+        f"print(sorted({{m.split('.')[0] for m in sys.modules}} & set({HEAVY!r})))"
+    )
+    result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                            check=True, timeout=60)
+    assert result.stdout.strip() == "[]"

@@ -1,8 +1,9 @@
 """The Dask cluster a study runs on: an embedded ``LocalCluster`` sized to this machine, or an
 existing scheduler (``--scheduler tcp://HOST:PORT``), unchanged.
 
-The embedded one listens on 127.0.0.1 only and starts no dashboard; its workers are processes
-with one thread each (a point is CPU-bound Python: threads would share one interpreter lock).
+The embedded one listens on 127.0.0.1 only (its HTTP routes too) and starts no dashboard; its
+workers are processes with one thread each (a point is CPU-bound Python: threads would share
+one interpreter lock).
 """
 
 from __future__ import annotations
@@ -79,6 +80,9 @@ def dask_client(scheduler: str | None, workers: int | None = None) -> Iterator[A
             processes=True,
             host="127.0.0.1",
             dashboard_address=None,
+            # The scheduler's HTTP server (health and metrics routes; no dashboard) on a free
+            # loopback port rather than 8787, which another cluster may hold.
+            scheduler_kwargs={"dashboard": False, "dashboard_address": "127.0.0.1:0"},
             silence_logs=logging.ERROR,
         )
     except (OSError, TimeoutError) as error:
