@@ -332,3 +332,17 @@ def test_the_command_line_loads_without_them() -> None:
     result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
                             check=True, timeout=60)
     assert result.stdout.strip() == "[]"
+
+
+@pytest.mark.parametrize("path", [*sorted(CONFIGS.glob("*/*.toml")), PAPER], ids=str)
+def test_a_config_sent_to_a_worker_as_data_reads_back_the_same(path: Path) -> None:
+    """Workers get the base's contents, not its path; bus points write them back as TOML."""
+    import tomllib
+
+    from ballbeam.config import read_config_data
+    from ballbeam.studies.spec import toml_document
+
+    if "sweeps" in path.parts:
+        return
+    data = read_config_data(path)
+    assert tomllib.loads(toml_document(data)) == data

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from ballbeam.config import read_config_data
 from ballbeam.studies.points import PointOutcome, PointTask, evaluate_batch, log_dir_for, warm_up
 from ballbeam.studies.spec import Point, SweepSpec, toml_value
 from ballbeam.studies.store import ResultStore, point_id
@@ -39,14 +40,17 @@ def tasks_for(
     spec: SweepSpec, points: Sequence[Point], output: Path
 ) -> list[tuple[PointTask, Point]]:
     base = str(spec.base) if spec.base is not None else None
+    base_data = read_config_data(spec.base) if spec.base is not None else {}
     log_dir = log_dir_for(output) if spec.runner != "offline" else None
     tasks = []
     for point in points:
         overrides = point.overrides
         if spec.runner != "offline":
             overrides = (*overrides, f"run.mode={toml_value(spec.runner)}")
-        identifier = point_id(base, overrides, spec.runner)
-        tasks.append((PointTask(identifier, base, overrides, spec.runner, log_dir), point))
+        identifier = point_id(base_data, overrides, spec.runner)
+        tasks.append(
+            (PointTask(identifier, base, base_data, overrides, spec.runner, log_dir), point)
+        )
     return tasks
 
 

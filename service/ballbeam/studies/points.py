@@ -11,13 +11,14 @@ from __future__ import annotations
 
 import os
 import socket
+import tempfile
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from ballbeam.config import Config, load_config
+from ballbeam.config import Config, config_from_data
 
 DESIGN_CACHE_SIZE = 32  # designs a worker keeps (each a few MB of gain schedule)
 
@@ -27,7 +28,9 @@ class PointTask:
     """What a worker needs to run a point: plain data, pickled to the worker."""
 
     point_id: str
-    base: str | None  # a config path on the worker's host (the driver's, on a LocalCluster)
+    base: str | None  # the base config's name, as the driver found it (for messages)
+    # The base's contents (its extends chain merged): workers on other hosts need no file.
+    base_data: dict[str, Any]
     overrides: tuple[str, ...]
     runner: str  # offline | lockstep | realtime
     log_dir: str | None  # bus runs: where their logs go
@@ -104,11 +107,16 @@ def bus_metrics(task: PointTask, config: Config) -> tuple[dict[str, Any], str]:
     from ballbeam.evaluation.summary import summarise
     from ballbeam.logs.reader import read_log
     from ballbeam.runtime.launcher import launch_run
+    from ballbeam.studies.spec import toml_document, toml_value
 
     overrides = list(task.overrides)
     if task.log_dir is not None:
-        overrides.append(f"run.log_dir={_toml_string(task.log_dir)}")
-    result = launch_run(task.base, overrides)
+        overrides.append(f"run.log_dir={toml_value(task.log_dir)}")
+    # Both processes of the run read a file: the base's contents, written on this host.
+    with tempfile.TemporaryDirectory(prefix="ballbeam-point-") as directory:
+        base_path = Path(directory) / f"{Path(task.base or 'config').stem}.toml"
+        base_path.write_text(toml_document(task.base_data) + "\n", encoding="utf-8")
+        result = launch_run(str(base_path), overrides)
     summary = summarise(read_log(result.log_path), config.limits.theta_rad)
     # The table keeps numbers and flags; faults and reasons are summarised as strings.
     metrics = {
@@ -121,12 +129,6 @@ def bus_metrics(task: PointTask, config: Config) -> tuple[dict[str, Any], str]:
     return metrics, str(result.log_path)
 
 
-def _toml_string(text: str) -> str:
-    import json
-
-    return json.dumps(text)
-
-
 def evaluate(task: PointTask) -> PointOutcome:
     """Run one point; any failure (a config a draw made invalid, a run that failed) is
     returned as the point's error."""
@@ -134,7 +136,7 @@ def evaluate(task: PointTask) -> PointOutcome:
     worker = f"{socket.gethostname()}:{os.getpid()}"
     log_path = None
     try:
-        config = load_config(task.base, task.overrides)
+        config = config_from_data(task.base_data, task.overrides, task.base or "config")
         if task.runner == "offline":
             metrics = offline_metrics(config)
         else:

@@ -132,6 +132,20 @@ def toml_value(value: Any) -> str:
     raise ConfigError(f"cannot sweep a value of type {type(value).__name__}: {value!r}")
 
 
+def toml_document(data: Mapping[str, Any], prefix: str = "") -> str:
+    """A TOML mapping (as ``tomllib`` reads it) written back as TOML text."""
+    lines = [
+        f"{json.dumps(key)} = {toml_value(value)}"
+        for key, value in data.items()
+        if not isinstance(value, Mapping)
+    ]
+    for key, value in data.items():
+        if isinstance(value, Mapping):
+            name = f"{prefix}{json.dumps(key)}"
+            lines += ["", f"[{name}]", toml_document(value, f"{name}.")]
+    return "\n".join(lines)
+
+
 def check_config_key(key: str, where: str) -> None:
     """ConfigError unless ``key`` (dotted) names a config key (``plant.seed``, ``tracker.q``;
     inside ``bus.options`` or ``expect`` any name)."""

@@ -18,21 +18,21 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
-from ballbeam.config import load_config
+from ballbeam.config import config_from_data
 from ballbeam.errors import BallbeamError, ConfigError
 from ballbeam.studies.points import PointOutcome
 
 STORE_VERSION = 1  # part of every id: a change of record layout starts afresh
 
 
-def point_id(base: str | None, overrides: tuple[str, ...], runner: str) -> str:
+def point_id(base_data: dict[str, Any], overrides: tuple[str, ...], runner: str) -> str:
     """The content address of a point (a config that does not validate: of its inputs)."""
     try:
-        config = load_config(base, overrides)
+        config = config_from_data(base_data, overrides)
         content: Any = config.model_dump(mode="json")
         content["run"].pop("log_dir")
     except BallbeamError:
-        content = {"base": base, "overrides": list(overrides)}
+        content = {"base": base_data, "overrides": list(overrides)}
     payload = json.dumps(
         {"version": STORE_VERSION, "runner": runner, "config": content}, sort_keys=True
     )

@@ -47,7 +47,7 @@ from typing import Any
 
 import numpy as np
 
-from ballbeam.config import load_config, resolve_config_path
+from ballbeam.config import load_config, read_config_data, resolve_config_path
 from ballbeam.errors import BallbeamError, ConfigError
 from ballbeam.files import not_a_regular_file
 from ballbeam.studies.points import PointOutcome, PointTask, evaluate_batch, warm_up
@@ -267,12 +267,13 @@ def overrides_for(spec: TuneSpec, params: Mapping[str, float]) -> dict[str, Any]
 
 def _set_tasks(spec: TuneSpec, scenario: SweepSpec, keys: Mapping[str, Any]) -> list[PointTask]:
     base = str(spec.base) if spec.base is not None else None
+    base_data = read_config_data(spec.base) if spec.base is not None else {}
     tuned = tuple(f"{key}={toml_value(value)}" for key, value in keys.items())
     tasks = []
     for point in scenario.points():
         overrides = (*point.overrides, *tuned)
-        tasks.append(PointTask(point_id(base, overrides, "offline"), base, overrides,
-                               "offline", None))
+        tasks.append(PointTask(point_id(base_data, overrides, "offline"), base, base_data,
+                               overrides, "offline", None))
     return tasks
 
 
