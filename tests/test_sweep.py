@@ -13,6 +13,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
+from contextlib import nullcontext
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +24,6 @@ from ballbeam.assembly import run_offline
 from ballbeam.cli import main
 from ballbeam.config import load_config
 from ballbeam.errors import ConfigError
-from ballbeam.studies.cluster import dask_client
 from ballbeam.studies.engine import run_sweep
 from ballbeam.studies.spec import SweepSpec, load_spec, spec_from_mapping
 
@@ -161,10 +161,12 @@ def test_a_bad_spec_is_one_line_and_exit_2(
 # --- sweeps on Dask ----------------------------------------------------------------------------
 
 
-def test_a_sweep_on_a_local_cluster_equals_the_points_run_one_by_one(tmp_path: Path) -> None:
+def test_a_sweep_on_a_local_cluster_equals_the_points_run_one_by_one(
+    tmp_path: Path, local_dask_client: Any
+) -> None:
     spec = load_spec(write_spec(tmp_path, SMALL_SPEC))
     output = tmp_path / "out"
-    outcome = run_sweep(spec, output, lambda: dask_client(None, 2), progress=False)
+    outcome = run_sweep(spec, output, lambda: nullcontext(local_dask_client), progress=False)
     table = pd.read_parquet(output / "results.parquet")
     assert outcome.total == len(table) == 6 and outcome.ran == 6 and outcome.workers == 2
     for point, (_, row) in zip(spec.points(), table.iterrows(), strict=True):
@@ -187,17 +189,19 @@ def test_a_sweep_on_a_local_cluster_equals_the_points_run_one_by_one(tmp_path: P
     pd.testing.assert_frame_equal(pd.read_parquet(output / "results.parquet"), table)
 
 
-def test_a_stopped_sweep_resumes_with_the_points_not_done(tmp_path: Path) -> None:
+def test_a_stopped_sweep_resumes_with_the_points_not_done(
+    tmp_path: Path, local_dask_client: Any
+) -> None:
     spec = load_spec(write_spec(tmp_path, SMALL_SPEC.replace(", 0.05]", "]")))
     output = tmp_path / "out"
-    outcome = run_sweep(spec, output, lambda: dask_client(None, 1), progress=False)
+    outcome = run_sweep(spec, output, lambda: nullcontext(local_dask_client), progress=False)
     assert outcome.ran == 4
     done = sorted((output / "points").glob("*.json"))
     removed = done[0]
     removed.unlink()  # as if the sweep had been stopped before this point
     # A grown spec: one more grid value; the old points are kept, the new and lost ones run.
     grown = load_spec(write_spec(tmp_path, SMALL_SPEC.replace("0.05]", "1.0]")))
-    resumed = run_sweep(grown, output, lambda: dask_client(None, 1), progress=False)
+    resumed = run_sweep(grown, output, lambda: nullcontext(local_dask_client), progress=False)
     assert resumed.total == 6 and resumed.ran == 3 and resumed.skipped == 3
     assert removed.exists()
 
@@ -281,7 +285,9 @@ def test_an_unreachable_scheduler_is_one_line_and_exit_2(tmp_path: Path) -> None
 
 
 @pytest.mark.bus
-def test_a_lockstep_bus_sweep_equals_the_runs_one_by_one(tmp_path: Path) -> None:
+def test_a_lockstep_bus_sweep_equals_the_runs_one_by_one(
+    tmp_path: Path, local_dask_client: Any
+) -> None:
     from ballbeam.evaluation.summary import summarise
     from ballbeam.logs.reader import read_log
     from ballbeam.runtime.launcher import launch_run
@@ -294,7 +300,7 @@ run = "lockstep"
 seeds = [3]
 """))
     output = tmp_path / "out"
-    outcome = run_sweep(spec, output, lambda: dask_client(None, 2), progress=False)
+    outcome = run_sweep(spec, output, lambda: nullcontext(local_dask_client), progress=False)
     assert outcome.ran == 1 and outcome.failed == 0
     table = pd.read_parquet(output / "results.parquet")
     for point, (_, row) in zip(spec.points(), table.iterrows(), strict=True):

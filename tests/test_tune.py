@@ -5,6 +5,7 @@ on the held-out set equal the same runs made one by one through ``run_offline``.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -12,7 +13,6 @@ from ballbeam.assembly import run_offline
 from ballbeam.cli import main
 from ballbeam.config import load_config
 from ballbeam.errors import ConfigError
-from ballbeam.studies.cluster import dask_client
 from ballbeam.studies.tune import load_tune_spec, run_tune
 
 from .conftest import PAPER
@@ -44,12 +44,11 @@ samples = 2
 """
 
 
-def test_a_small_tuning_on_a_local_cluster(tmp_path: Path) -> None:
+def test_a_small_tuning_on_a_local_cluster(tmp_path: Path, local_dask_client: Any) -> None:
     spec_path = tmp_path / "tune.toml"
     spec_path.write_text(SMALL_TUNE)
     spec = load_tune_spec(spec_path)
-    with dask_client(None, 2) as client:
-        outcome = run_tune(spec, tmp_path / "out", client, progress=False)
+    outcome = run_tune(spec, tmp_path / "out", local_dask_client, progress=False)
     assert outcome.default_params == {"tracker.q[3]": 10000.0, "plan.theta_margin_deg": 0.5}
     assert len(outcome.trials) == 4
     assert outcome.trials.iloc[0]["params_tracker.q[3]"] == 10000.0  # trial 0: the base

@@ -436,11 +436,21 @@ def run_tune(
     best_params = {name: float(value) for name, value in best.params.items()}
     tuned_path = write_tuned_config(spec, output / "tuned.toml", best_params, scores[best.number],
                                     scores[0], best.number)
+    import pandas as pd
+
     table = []
     holdout: dict[str, SetScore] = {}
+    holdout_rows = []
     for label, params in (("default", default_params), ("tuned", best_params)):
         tasks = _set_tasks(spec, spec.holdout, overrides_for(spec, params))
-        holdout[label] = score(spec, run_set(client, tasks, workers))
+        held_out = run_set(client, tasks, workers)
+        holdout[label] = score(spec, held_out)
+        holdout_rows += [
+            {"config": label, **point.as_dict(), **outcome.metrics, "error": outcome.error}
+            for point, outcome in zip(spec.holdout.points(), held_out, strict=True)
+        ]
+    # Every held-out run of both configs: which scenarios make the worst case.
+    pd.DataFrame(holdout_rows).to_parquet(output / "holdout.parquet", index=False)
     for label, trial_number in (("default", 0), ("tuned", best.number)):
         for set_name, result in (("tuning", scores[trial_number]), ("held-out", holdout[label])):
             table.append({"set": set_name, "config": label, "feasible": result.feasible,
