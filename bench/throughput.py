@@ -70,6 +70,8 @@ def rate(client: Any, runner: str, points: int, own_design: bool = False) -> dic
         "elapsed_s": elapsed_s,
         "runs_per_min": 60.0 * len(outcomes) / elapsed_s,
         "point_wall_median_s": statistics.median(outcome.wall_time_s for outcome in outcomes),
+        # What a point costs the worker, whatever else the shared machine runs meanwhile.
+        "point_cpu_median_s": statistics.median(outcome.cpu_time_s for outcome in outcomes),
     }
 
 
@@ -125,17 +127,18 @@ def main(argv: list[str] | None = None) -> int:
           f"= {60 / startup['simulate_4s_s']:.0f} runs/min one process at a time")
     print()
     print("| runs (4 s each) | 1 worker: runs/min | 2 workers: runs/min | point wall, median "
-          "(1 / 2 workers) |")
-    print("| --- | --- | --- | --- |")
+          "(1 / 2 workers) | worker CPU a point, median (1 / 2 workers) |")
+    print("| --- | --- | --- | --- | --- |")
     for key, label in (("offline_shared_design", "offline, one shared design"),
                        ("offline_own_design", "offline, a design per point"),
                        ("lockstep", "bus, lock-step")):
         one, two = results["workers_1"][key], results["workers_2"][key]
         print(f"| {label} ({one['points']}/{two['points']} points) | {one['runs_per_min']:.0f} | "
               f"{two['runs_per_min']:.0f} | {one['point_wall_median_s']:.3f} / "
-              f"{two['point_wall_median_s']:.3f} s |")
+              f"{two['point_wall_median_s']:.3f} s | {one['point_cpu_median_s']:.3f} / "
+              f"{two['point_cpu_median_s']:.3f} s |")
     print(f"| cluster start | {results['workers_1']['cluster_start_s']:.2f} s | "
-          f"{results['workers_2']['cluster_start_s']:.2f} s | |")
+          f"{results['workers_2']['cluster_start_s']:.2f} s | | |")
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=2))
     return 0

@@ -295,7 +295,7 @@ def test_a_lockstep_bus_sweep_equals_the_runs_one_by_one(
     spec = load_spec(write_spec(tmp_path, f"""
 [sweep]
 base = "{PAPER}"
-set = ["run.duration_s=1.0"]
+set = ["run.duration_s=0.5"]
 run = "lockstep"
 seeds = [3]
 """))

@@ -157,7 +157,7 @@ def results_table(
     spec: SweepSpec, pairs: list[tuple[PointTask, Point]], records: dict[str, dict[str, Any]]
 ) -> Any:
     """One row a point, in the spec's order: its id, the swept keys, every metric, the log
-    path, the error (None if it ran), its wall time and worker."""
+    path, the error (None if it ran), its wall and CPU time and worker."""
     import pandas as pd
 
     rows = []
@@ -171,6 +171,7 @@ def results_table(
                 "log_path": record.get("log_path"),
                 "error": record.get("error"),
                 "wall_time_s": record.get("wall_time_s"),
+                "cpu_time_s": record.get("cpu_time_s"),
                 "worker": record.get("worker"),
             }
         )
@@ -184,7 +185,7 @@ def metric_columns(table: Any, spec: SweepSpec) -> list[str]:
     """The numeric metric columns of a results table (not the keys or the bookkeeping)."""
     import pandas as pd
 
-    skip = {*spec.keys, "point_id", "log_path", "error", "wall_time_s", "worker"}
+    skip = {*spec.keys, "point_id", "log_path", "error", "wall_time_s", "cpu_time_s", "worker"}
     return [
         column
         for column in table.columns

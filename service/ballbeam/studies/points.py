@@ -44,6 +44,7 @@ class PointOutcome:
     error: str | None
     wall_time_s: float
     worker: str
+    cpu_time_s: float = 0.0  # this worker process's CPU (a bus run's two children not counted)
 
 
 class _LeastRecentlyUsed:
@@ -133,6 +134,7 @@ def evaluate(task: PointTask) -> PointOutcome:
     """Run one point; any failure (a config a draw made invalid, a run that failed) is
     returned as the point's error."""
     started = time.perf_counter()
+    started_cpu_s = time.process_time()
     worker = f"{socket.gethostname()}:{os.getpid()}"
     log_path = None
     try:
@@ -150,9 +152,11 @@ def evaluate(task: PointTask) -> PointOutcome:
             f"{type(error).__name__}: {' / '.join(message)}"[:2000],
             time.perf_counter() - started,
             worker,
+            time.process_time() - started_cpu_s,
         )
     return PointOutcome(
-        task.point_id, metrics, log_path, None, time.perf_counter() - started, worker
+        task.point_id, metrics, log_path, None, time.perf_counter() - started, worker,
+        time.process_time() - started_cpu_s,
     )
 
 
