@@ -187,6 +187,10 @@ def test_a_sweep_on_a_local_cluster_equals_the_points_run_one_by_one(
     again = run_sweep(spec, output, no_cluster, progress=False)
     assert again.ran == 0 and again.skipped == 6
     pd.testing.assert_frame_equal(pd.read_parquet(output / "results.parquet"), table)
+    # --retry-failed: only the failed points run again (and fail again, for the same reason).
+    retried = run_sweep(spec, output, lambda: nullcontext(local_dask_client), progress=False,
+                        retry_failed=True)
+    assert retried.ran == 2 and retried.skipped == 4 and retried.failed == 2
 
 
 def test_a_stopped_sweep_resumes_with_the_points_not_done(

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from ballbeam.config import read_config_data
+from ballbeam.errors import ConfigError
 from ballbeam.studies.points import PointOutcome, PointTask, evaluate_batch, log_dir_for, warm_up
 from ballbeam.studies.spec import Point, SweepSpec, toml_value
 from ballbeam.studies.store import ResultStore, point_id
@@ -140,7 +141,10 @@ def run_sweep(
             run_points(client, list(todo.values()), spec.runner, keep, progress, spec.path.stem)
     table = results_table(spec, pairs, records)
     table_path = output / TABLE_NAME
-    table.to_parquet(table_path, index=False)
+    try:
+        table.to_parquet(table_path, index=False)
+    except OSError as error:  # the points are stored: a rerun writes the table without them
+        raise ConfigError(f"cannot write the results table {table_path}: {error}") from error
     return SweepOutcome(
         table=table,
         table_path=table_path,
