@@ -356,3 +356,45 @@ def test_a_config_sent_to_a_worker_as_data_reads_back_the_same(path: Path) -> No
         return
     data = read_config_data(path)
     assert tomllib.loads(toml_document(data)) == data
+
+
+# --- the design cache's key ---------------------------------------------------------------------
+
+# A changed value for every key the design does not read (assembly.design_key leaves them out).
+NOT_DESIGN = {
+    "plant.motor_gain_scale": 1.1, "plant.ball_gain_scale": 0.9, "plant.saturation_v": 6.0,
+    "plant.position_noise_m": 3e-4, "plant.noise_bandwidth_hz": 100.0,
+    "plant.nonlinear_ball": True, "plant.hard_stop_deg": 57.0, "plant.sensor_rate_hz": 2000,
+    "plant.physics_substeps": 20, "plant.seed": 5, "plant.hold_until_enabled": False,
+    "plant.watchdog_ms": 30.0, "plant.lockstep_resend_ms": 30.0, "plant.cpu": 1,
+    "plant.realtime_priority": 10, "plant.command_loss": 0.1, "plant.sensor_loss": 0.1,
+    "run.duration_s": 2.0, "run.log_dir": "elsewhere", "run.lockstep_poll_us": 5,
+    "bus.port": 40000,
+}
+
+
+def test_configs_with_one_design_key_get_one_design() -> None:
+    """The worker's cache is sound: every plant and run key but the dead zone and the mode
+    leaves the design (and T*) as it is, and those two change it."""
+    import pickle
+
+    from ballbeam.assembly import controller_design, design_key, minimum_time_key
+    from ballbeam.config import PlantSection, RunSection
+    from ballbeam.studies.spec import toml_value
+
+    assert {key.split(".")[1] for key in NOT_DESIGN if key.startswith("plant.")} == set(
+        PlantSection.model_fields) - {"deadzone_v"}
+    assert {key.split(".")[1] for key in NOT_DESIGN if key.startswith("run.")} == set(
+        RunSection.model_fields) - {"mode"}
+    base = load_config(PAPER)
+    design = pickle.dumps(controller_design(base))
+    for key, value in NOT_DESIGN.items():
+        config = load_config(PAPER, [f"{key}={toml_value(value)}"])
+        assert config != base
+        assert design_key(config) == design_key(base), key
+        assert minimum_time_key(config) == minimum_time_key(base), key
+        assert pickle.dumps(controller_design(config)) == design, key
+    for key, value in (("plant.deadzone_v", 0.4), ("run.mode", "realtime")):
+        config = load_config(PAPER, [f"{key}={toml_value(value)}"])
+        assert design_key(config) != design_key(base), key
+        assert pickle.dumps(controller_design(config)) != design, key
