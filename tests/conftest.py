@@ -5,6 +5,7 @@ from __future__ import annotations
 import importlib
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 from types import ModuleType
 
@@ -43,3 +44,14 @@ def ballbeam(*args: str, timeout_s: float = 300) -> subprocess.CompletedProcess[
 @pytest.fixture
 def paper_config_path() -> Path:
     return PAPER
+
+
+@pytest.fixture(scope="session")
+def local_dask_client() -> Iterator[object]:
+    """One embedded Dask LocalCluster (2 worker processes, loopback) for the study tests: a
+    cluster takes seconds to start."""
+    pytest.importorskip("distributed")
+    from ballbeam.studies.cluster import dask_client
+
+    with dask_client(None, 2) as client:
+        yield client

@@ -344,6 +344,99 @@ def command_regress(args: argparse.Namespace) -> int:
     return 0 if all(result.passed for result in results) else 1
 
 
+def _scheduler_address(text: str) -> str:
+    if not text.startswith(("tcp://", "tls://", "inproc://", "ucx://")) or len(text) < 8:
+        raise argparse.ArgumentTypeError(
+            f"not a Dask scheduler address (tcp://HOST:PORT): {text!r}"
+        )
+    return text
+
+
+def command_sweep(args: argparse.Namespace) -> int:
+    from ballbeam.studies.cluster import dask_client, import_studies_extra
+    from ballbeam.studies.engine import metric_columns, run_sweep
+    from ballbeam.studies.report import failures_text, plot_sweep, summary_text
+    from ballbeam.studies.spec import load_spec
+
+    spec = load_spec(args.spec)
+    import_studies_extra()
+    output = Path(args.output) if args.output else (
+        spec.output or Path("sweep-results") / spec.path.stem
+    )
+    outcome = run_sweep(
+        spec,
+        output,
+        lambda: dask_client(args.scheduler, args.workers),
+        retry_failed=args.retry_failed,
+        progress=not args.json,
+    )
+    metrics = metric_columns(outcome.table, spec)
+    plots = [] if args.no_plots else plot_sweep(outcome.table, spec, metrics, output / "plots")
+    report = {
+        "spec": str(spec.path),
+        "runner": spec.runner,
+        "points": outcome.total,
+        "ran": outcome.ran,
+        "skipped_done": outcome.skipped,
+        "failed": outcome.failed,
+        "workers": outcome.workers,
+        "wall_time_s": outcome.wall_time_s,
+        "table": str(outcome.table_path),
+        "plots": [str(path) for path in plots],
+    }
+    if args.json:
+        print_json(report)
+        return 0
+    print(summary_text(outcome.table, metrics, title=(
+        f"sweep {spec.path.stem} ({spec.runner}): {outcome.total} points, {outcome.ran} run "
+        f"now, {outcome.skipped} already done, {outcome.failed} failed; "
+        f"{outcome.wall_time_s:.1f} s on {outcome.workers} worker(s)"
+    )))
+    failures = failures_text(outcome.table)
+    if failures:
+        print(failures)
+    print(f"table: {outcome.table_path}")
+    if plots:
+        print(f"plots: {plots[0].parent}/ ({len(plots)} files)")
+    return 0
+
+
+def command_tune(args: argparse.Namespace) -> int:
+    from ballbeam.studies.cluster import dask_client, import_studies_extra
+    from ballbeam.studies.tune import load_tune_spec, markdown_table, run_tune
+
+    spec = load_tune_spec(args.spec)
+    import_studies_extra()
+    output = Path(args.output) if args.output else (
+        spec.output or Path("sweep-results") / spec.path.stem
+    )
+    with dask_client(args.scheduler, args.workers) as client:
+        outcome = run_tune(spec, output, client, progress=not args.json)
+    report = {
+        "spec": str(spec.path),
+        "trials": spec.trials,
+        "best_trial": outcome.best_trial,
+        "default": outcome.default_params,
+        "tuned": outcome.best_params,
+        "tuned_config": str(outcome.tuned_path),
+        "holdout_worst_improvement": outcome.holdout_improvement,
+        "before_after": outcome.table,
+    }
+    if args.json:
+        print_json(report)
+        return 0
+    print(f"tuned in {spec.trials} trials (best: trial {outcome.best_trial}); "
+          f"{spec.objective} {spec.metric} over {len(spec.train.points())} tuning runs, "
+          f"verdict on {len(spec.holdout.points())} held-out runs")
+    print(markdown_table(outcome.table))
+    print(f"held-out worst {spec.metric}: {100 * outcome.holdout_improvement:+.1f} % "
+          "better than the default" if outcome.holdout_improvement >= 0 else
+          f"held-out worst {spec.metric}: {100 * -outcome.holdout_improvement:.1f} % worse "
+          "than the default")
+    print(f"tuned config: {outcome.tuned_path}")
+    return 0
+
+
 def command_configs(args: argparse.Namespace) -> int:
     from ballbeam.config import resolve_config_path, shipped_configs
 
@@ -358,6 +451,18 @@ def command_configs(args: argparse.Namespace) -> int:
         about = next((line.lstrip("# ").strip() for line in lines if line.startswith("#")), "")
         print(f"  {path.relative_to(root).with_suffix('')!s:36} {about}")
     return 0
+
+
+def _add_cluster_arguments(parser: argparse.ArgumentParser) -> None:
+    where = parser.add_mutually_exclusive_group()
+    where.add_argument(
+        "--scheduler", type=_scheduler_address, metavar="tcp://HOST:PORT",
+        help="run on this Dask cluster (default: an embedded LocalCluster on 127.0.0.1)",
+    )
+    where.add_argument(
+        "--workers", type=_positive_int, default=None,
+        help="worker processes of the embedded cluster (default: one per core)",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -449,6 +554,31 @@ def build_parser() -> argparse.ArgumentParser:
     regress_parser.add_argument("--json", action="store_true", help="print one JSON object")
     regress_parser.add_argument("--junit-xml", metavar="PATH", help="write a JUnit XML report")
     regress_parser.set_defaults(handler=command_regress)
+
+    sweep = commands.add_parser(
+        "sweep", help="a grid and/or Monte-Carlo of runs on a Dask cluster: table and plots"
+    )
+    sweep.add_argument("spec", metavar="SPEC.toml", help="sweep spec (or a shipped one, "
+                       "e.g. sweeps/mismatch_monte_carlo)")
+    sweep.add_argument("--output", metavar="DIR", help="results directory (default: the "
+                       "spec's sweep.output, else sweep-results/<spec name>)")
+    _add_cluster_arguments(sweep)
+    sweep.add_argument("--retry-failed", action="store_true",
+                       help="run again the points that failed before (done ones are skipped)")
+    sweep.add_argument("--no-plots", action="store_true", help="write the table only")
+    sweep.add_argument("--json", action="store_true", help="print one JSON object, no bar")
+    sweep.set_defaults(handler=command_sweep)
+
+    tune = commands.add_parser(
+        "tune", help="choose tracker, observer and plan keys for a robust objective (Optuna)"
+    )
+    tune.add_argument("spec", metavar="SPEC.toml", help="tuning spec (or a shipped one, "
+                      "e.g. sweeps/tune_robust_rest)")
+    tune.add_argument("--output", metavar="DIR", help="results directory (default: the spec's "
+                      "tune.output, else sweep-results/<spec name>)")
+    _add_cluster_arguments(tune)
+    tune.add_argument("--json", action="store_true", help="print one JSON object, no bar")
+    tune.set_defaults(handler=command_tune)
 
     configs = commands.add_parser(
         "configs", help="list the configs shipped with the package, or print one"

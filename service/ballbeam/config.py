@@ -633,7 +633,21 @@ def resolve_config_path(name: str | Path) -> Path:
 
 def load_config(path: str | Path | None, overrides: Iterable[str] = ()) -> Config:
     """Load ``path`` (or the paper's defaults when None) and apply ``--set`` overrides."""
-    data: dict[str, Any] = {} if path is None else _read_toml(resolve_config_path(path))
+    data: dict[str, Any] = {} if path is None else read_config_data(path)
+    return config_from_data(data, overrides, str(path) if path is not None else "config")
+
+
+def read_config_data(path: str | Path) -> dict[str, Any]:
+    """The TOML mapping of a config file (or shipped name) with its ``extends`` chain merged:
+    what a process on another host needs to build the same config without the file."""
+    return _read_toml(resolve_config_path(path))
+
+
+def config_from_data(
+    data: Mapping[str, Any], overrides: Iterable[str] = (), source: str = "config"
+) -> Config:
+    """``data`` (as :func:`read_config_data` gives it) with ``--set`` overrides, validated."""
+    merged = dict(data)
     for assignment in overrides:
-        data = _deep_merge(data, parse_override(assignment))
-    return config_from_mapping(data, str(path) if path is not None else "config")
+        merged = _deep_merge(merged, parse_override(assignment))
+    return config_from_mapping(merged, source)

@@ -35,3 +35,7 @@ class RecorderError(BallbeamError, OSError):
 
 class LiveViewError(BallbeamError, OSError):
     """The live view's WebSocket server cannot start (e.g. its port is taken)."""
+
+
+class ClusterError(BallbeamError, ConnectionError):
+    """The Dask cluster a study runs on cannot be started or reached."""
