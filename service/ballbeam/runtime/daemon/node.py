@@ -11,10 +11,12 @@ from pathlib import Path
 
 from ballbeam.assembly import controller_design
 from ballbeam.config import Config
+from ballbeam.errors import BusError
 from ballbeam.logs import design_record
 from ballbeam.logs.recorder import Recorder
 from ballbeam.logs.recording import RunRecording
 from ballbeam.protocol.frames import FrameContract
+from ballbeam.protocol.secoc import FrameAuthenticator
 from ballbeam.runtime.bus import open_bus
 from ballbeam.runtime.daemon.loop import ControllerDaemon
 from ballbeam.runtime.process import (
@@ -28,6 +30,12 @@ from ballbeam.runtime.stop import StopFlag
 from ballbeam.runtime.ticker import worst_lateness_ns
 
 log = logging.getLogger("ballbeam")
+
+NO_SECRET = (
+    "bus.authenticate is on ({bus}) but the daemon has no run secret: `ballbeam run` hands "
+    "one to both processes; alone, pass the same 32 bytes to both with --secret-fd N (e.g. "
+    "--secret-fd 0 < secret.bin), or set bus.authenticate=false for the classic contract"
+)
 
 
 def with_measured_latency(config: Config) -> tuple[Config, dict[str, str]]:
@@ -64,9 +72,17 @@ def with_measured_latency(config: Config) -> tuple[Config, dict[str, str]]:
     return config, probe
 
 
-def run_daemon(config: Config, log_path: Path, config_path: str | None) -> str:
+def run_daemon(
+    config: Config, log_path: Path, config_path: str | None, secret: bytes | None = None
+) -> str:
     """Plan, synthesise, open the recorder and the bus, run, finish the file. Returns how the
-    run ended (``DaemonStats.end_reason``); PlantLostError if no plant answered at the start."""
+    run ended (``DaemonStats.end_reason``); PlantLostError if no plant answered at the start.
+    ``secret``: the run's frame-authentication key (needed when ``bus.authenticated``)."""
+    auth = None
+    if config.bus.authenticated:
+        if secret is None:
+            raise BusError(NO_SECRET.format(bus=config.bus.interface))
+        auth = FrameAuthenticator(secret)
     design = controller_design(config)  # before touching the bus: a bad config fails fast
     # The recorder's writer thread shares the GIL; switching sooner bounds how long it can
     # hold up the control loop's wake-up (measured: p99 lateness roughly halved).
@@ -103,6 +119,7 @@ def run_daemon(config: Config, log_path: Path, config_path: str | None) -> str:
                 "period_ns": str(config.controller.period_ns),
                 "sensor_period_ns": str(1_000_000_000 // config.plant.sensor_rate_hz),
                 "bus": f"{config.bus.interface}:{config.bus.channel}",
+                "authenticated": str(config.bus.authenticated).lower(),
                 **{f"scheduling_{key}": value for key, value in scheduling.items()},
             },
         },
@@ -113,7 +130,9 @@ def run_daemon(config: Config, log_path: Path, config_path: str | None) -> str:
     try:
         bus = open_bus(config.bus)
         try:
-            daemon = ControllerDaemon(config, design, bus, contract, RunRecording(recorder), stop)
+            daemon = ControllerDaemon(
+                config, design, bus, contract, RunRecording(recorder), stop, auth
+            )
             settle_heap()
             try:
                 stats = daemon.run()
