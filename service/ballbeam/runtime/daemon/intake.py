@@ -36,7 +36,12 @@ from ballbeam.protocol.frames import (
     TruthAngle,
     TruthBall,
 )
-from ballbeam.protocol.secoc import CLASSIC_LENGTH, FrameAuthenticator, OwnVerdict
+from ballbeam.protocol.secoc import (
+    AUTHENTICATED_LENGTH,
+    CLASSIC_LENGTH,
+    FrameAuthenticator,
+    OwnVerdict,
+)
 
 MAX_RECORDED_REJECTIONS = 1000  # per reason: beyond this only the count grows (no log floods)
 
@@ -135,17 +140,26 @@ class SensorIntake:
             self.reject("foreign", f"{kind} frame 0x{message.arbitration_id:X}", log_time_ns,
                         cycle)
             return None
-        if self.auth is not None:
-            auth_verdict = self.auth.verify(message.arbitration_id, data)
+        auth = self.auth
+        authenticated = auth is None  # a classic bus: the contract is all there is
+        if auth is not None and len(data) == AUTHENTICATED_LENGTH:
+            auth_verdict = auth.verify(message.arbitration_id, data)
             if auth_verdict != "ok":
                 self.reject(auth_verdict, f"frame 0x{message.arbitration_id:03X}: {auth_verdict}",
                             log_time_ns, cycle)
                 return None
             data = data[:CLASSIC_LENGTH]
+            authenticated = True
         try:
+            # Any other length is judged by the contract first, so noise keeps its reasons.
             frame = self.contract.decode(message.arbitration_id, data)
         except FrameRejectedError as error:
             self.reject(error.reason, str(error), log_time_ns, cycle)
+            return None
+        if not authenticated:
+            # A well-formed classic frame on an authenticated bus: a stranger's.
+            self.reject("unauthenticated", f"frame 0x{message.arbitration_id:03X} has no MAC",
+                        log_time_ns, cycle)
             return None
         if isinstance(frame, SensorFrame):
             verdict = self.sensor_check.classify(frame.counter)
