@@ -62,6 +62,9 @@ def one_run(mode: str, attacked: bool, seed: int, log_dir: Path) -> dict[str, An
         "end_reason": summary["end_reason"],
         "rest_time_s": summary["rest_time_s"],
         "overruns": int(meta.get("overruns", 0)),
+        "plant_missed_periods": summary.get("plant_missed_periods"),
+        "lateness_max_us": summary.get("lateness_max_us"),
+        "frames_lost": summary.get("frames_lost"),
         "sensor_timeouts": sum(1 for m in log.json_topics["/faults"].messages
                                if m.get("kind") == "sensor_timeout")
         if "/faults" in log.json_topics else 0,
@@ -71,7 +74,9 @@ def one_run(mode: str, attacked: bool, seed: int, log_dir: Path) -> dict[str, An
     }
     if flood is not None:
         out, _ = flood.communicate()
-        row["flood"] = json.loads(out) if out.strip() else None
+        flood_report = json.loads(out) if out.strip() else {}
+        row["flood_sent"] = flood_report.get("sent")
+        row["flood_elapsed_s"] = flood_report.get("elapsed_s")
     result.log_path.unlink()
     return row
 
