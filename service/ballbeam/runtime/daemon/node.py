@@ -78,11 +78,6 @@ def run_daemon(
     """Plan, synthesise, open the recorder and the bus, run, finish the file. Returns how the
     run ended (``DaemonStats.end_reason``); PlantLostError if no plant answered at the start.
     ``secret``: the run's frame-authentication key (needed when ``bus.authenticated``)."""
-    auth = None
-    if config.bus.authenticated:
-        if secret is None:
-            raise BusError(NO_SECRET.format(bus=config.bus.interface))
-        auth = FrameAuthenticator(secret)
     design = controller_design(config)  # before touching the bus: a bad config fails fast
     # The recorder's writer thread shares the GIL; switching sooner bounds how long it can
     # hold up the control loop's wake-up (measured: p99 lateness roughly halved).
@@ -128,6 +123,13 @@ def run_daemon(
     stop = StopFlag().install()
     summary: dict[str, str] = {}
     try:
+        # After the log is open (an unwritable log is the first thing to hear about), before
+        # the bus: no frame goes out unauthenticated.
+        auth = None
+        if config.bus.authenticated:
+            if secret is None:
+                raise BusError(NO_SECRET.format(bus=config.bus.interface))
+            auth = FrameAuthenticator(secret)
         bus = open_bus(config.bus)
         try:
             daemon = ControllerDaemon(
