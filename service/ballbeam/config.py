@@ -338,6 +338,13 @@ class ControllerSection(_Section):
         "permitted (0: normal scheduling); below the kernel's interrupt threads (50)"
     )
 
+    @field_validator("realtime_priority", mode="before")
+    @classmethod
+    def _null_priority_is_off(cls, value: object) -> object:
+        # Configs recorded before SCHED_FIFO became the default (bf06989) say null for
+        # normal scheduling, which is 0 now: their logs' configs stay usable (replay --verify).
+        return 0 if value is None else value
+
     @property
     def period_ns(self) -> int:
         return 1_000_000_000 // self.rate_hz
@@ -377,6 +384,13 @@ class PlantSection(_Section):
         44, ge=0, le=99, description="real time: SCHED_FIFO priority for the emulator, where "
         "permitted (0: normal scheduling)"
     )
+
+    @field_validator("realtime_priority", mode="before")
+    @classmethod
+    def _null_priority_is_off(cls, value: object) -> object:
+        # Configs recorded before SCHED_FIFO became the default (bf06989) say null for
+        # normal scheduling, which is 0 now: their logs' configs stay usable (replay --verify).
+        return 0 if value is None else value
     command_loss: float = Field(0.0, ge=0, lt=1, description="fault injection: drop fraction")
     sensor_loss: float = Field(0.0, ge=0, lt=1, description="fault injection: drop fraction")
 
