@@ -40,7 +40,6 @@ FRESHNESS_BYTES: Final = 8
 MAC_BYTES: Final = 8
 AUTHENTICATED_LENGTH: Final = CLASSIC_LENGTH + FRESHNESS_BYTES + MAC_BYTES  # a CAN FD length
 DEFAULT_WINDOW_NS: Final = 1_000_000_000
-ECHOES_KEPT: Final = 512  # classic bus: own payloads remembered for their loop-back
 MAX_SENT_KEPT: Final = 65_536  # own frames remembered (a window's worth at any sane rate)
 
 AuthVerdict: TypeAlias = Literal["ok", "unauthenticated", "bad_mac", "replayed", "out_of_window"]
