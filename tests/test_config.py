@@ -172,3 +172,15 @@ def test_fuzzed_overrides_either_load_or_raise_config_error(key: str, value: str
 def test_rest_bands_must_be_ordered(override: str, fragment: str) -> None:
     with pytest.raises(ConfigError, match=fragment):
         load_config(None, [override])
+
+
+def test_a_recorded_null_realtime_priority_reads_as_normal_scheduling() -> None:
+    """Logs recorded before SCHED_FIFO became the default carry null (then: normal
+    scheduling); 0 means that now, so their configs stay usable for replay --verify."""
+    from ballbeam.config import config_from_mapping, load_config
+
+    data = load_config(None, []).model_dump(mode="json")
+    data["controller"]["realtime_priority"] = None
+    data["plant"]["realtime_priority"] = None
+    config = config_from_mapping(data, "old log")
+    assert config.controller.realtime_priority == 0 and config.plant.realtime_priority == 0

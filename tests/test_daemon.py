@@ -26,6 +26,7 @@ from ballbeam.protocol.frames import (
     TruthBall,
     VoltageCommand,
 )
+from ballbeam.protocol.secoc import FrameAuthenticator
 from ballbeam.runtime.daemon.command_out import CommandOut
 from ballbeam.runtime.daemon.intake import SensorIntake, SentCommands
 from ballbeam.runtime.daemon.node import run_daemon
@@ -96,6 +97,65 @@ def test_intake_accepts_samples_in_order_and_judges_the_rest(recording: RunRecor
     assert intake.latest == SensorFrame(7, 10, -20, 0)
 
 
+def test_an_authenticated_intake_refuses_forged_replayed_and_reordered_frames_by_reason(
+    recording: RunRecording,
+) -> None:
+    """The plant's frames under the run's key pass; a forger's key, a replay, a reorder, a
+    tampered byte and a well-formed classic frame are each refused by reason, and none moves
+    the sensor counter check or the truth (the real stream goes on being accepted)."""
+    secret = secrets.token_bytes(32)
+    plant, daemon = FrameAuthenticator(secret), FrameAuthenticator(secret)
+    forger = FrameAuthenticator(secrets.token_bytes(32))
+    intake = SensorIntake(CONTRACT, recording, auth=daemon)
+
+    def fd(frame: SensorFrame | TruthAngle | TruthBall | VoltageCommand,
+           key: FrameAuthenticator = plant) -> can.Message:
+        frame_id, data = CONTRACT.encode(frame)
+        return can.Message(arbitration_id=frame_id, data=key.protect(frame_id, data),
+                           is_extended_id=False, is_fd=True)
+
+    first = fd(SensorFrame(0, 1, 1, 0))
+    assert intake.handle(first, 0, 0) == "ok"
+    older = fd(SensorFrame(1, 2, 2, 0))
+    newer = fd(SensorFrame(2, 3, 3, 0))
+    assert intake.handle(newer, 0, 0) == "ok"
+    assert intake.handle(older, 0, 0) is None  # reordered: refused before the counter check
+    assert intake.handle(first, 0, 0) is None  # replayed
+    assert intake.handle(fd(SensorFrame(200, 9, 9, 0), forger), 0, 0) is None
+    tampered = bytearray(fd(SensorFrame(3, 4, 4, 0)).data)
+    tampered[2] ^= 0x01
+    assert intake.handle(message(SENSOR_ID, bytes(tampered)), 0, 0) is None
+    assert intake.handle(framed(SensorFrame(3, 5, 5, 0)), 0, 0) is None  # no MAC
+    # Forged truth is never paired into the record; the plant's is.
+    intake.handle(fd(TruthAngle(2, 1.5, 0.0), forger), 0, 0)
+    intake.handle(fd(TruthBall(2, 0.2, 0.0), forger), 0, 0)
+    assert intake.handle(fd(SensorFrame(3, 6, 6, 0)), 0, 0) == "ok"  # the stream goes on
+    assert intake.latest == SensorFrame(3, 6, 6, 0)
+    assert intake.sensor_check.stale == 0
+    assert dict(intake.rejected) == {"replayed": 2, "bad_mac": 4, "unauthenticated": 1}
+    # A command frame with the run's key that the daemon never sent: a second writer.
+    intake.handle(fd(VoltageCommand(0, 1.0, True, 3), plant), 0, 0)
+    assert intake.second_writer_frames == 1 and intake.rejected["foreign_command"] == 1
+
+
+def test_a_classic_intake_takes_three_valid_commands_it_never_sent_for_a_second_writer(
+    recording: RunRecording,
+) -> None:
+    sent = SentCommands()
+    intake = SensorIntake(CONTRACT, recording, sent)
+    ours = framed(VoltageCommand(0, 1.0, True, 7))
+    sent.note(bytes(ours.data))
+    intake.handle(ours, 0, 0)
+    intake.handle(ours, 0, 0)  # a replay of ours: a stranger's, not a writer's
+    corrupt = bytearray(framed(VoltageCommand(1, 5.0, True, 7)).data)
+    corrupt[0] ^= 0xFF
+    intake.handle(message(0x100, bytes(corrupt)), 0, 0)
+    assert intake.second_writer_frames == 0
+    intake.handle(framed(VoltageCommand(1, 5.0, True, 7)), 0, 0)
+    assert intake.second_writer_frames == 1
+    assert intake.own_frames == 1 and intake.rejected["foreign_command"] == 3
+
+
 def test_command_out_counts_resends_and_shuts_down_at_zero(recording: RunRecording) -> None:
     channel = f"ballbeam-test-{secrets.token_hex(4)}"
     with can.Bus(interface="virtual", channel=channel) as sender, can.Bus(
@@ -121,12 +181,14 @@ def test_the_whole_daemon_in_process_runs_like_the_offline_loop(tmp_path: Path) 
     config = virtual_config(1.5)
     stop_plant = StopFlag()
     plant_bus = can.Bus(interface="virtual", channel=config.bus.channel)
-    emulator = PlantEmulator(config, plant_bus, CONTRACT)
+    assert config.bus.authenticated  # the virtual bus: SecOC-style frames by default
+    secret = secrets.token_bytes(32)
+    emulator = PlantEmulator(config, plant_bus, CONTRACT, auth=FrameAuthenticator(secret))
     plant = threading.Thread(target=emulator.run_lockstep, args=(stop_plant,), daemon=True)
     plant.start()
     log_path = tmp_path / "run.mcap"
     try:
-        end_reason = run_daemon(config, log_path, None)
+        end_reason = run_daemon(config, log_path, None, secret)
     finally:
         stop_plant.set()
         plant.join(timeout=10)

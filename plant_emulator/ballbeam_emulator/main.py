@@ -10,16 +10,19 @@ import sys
 from collections.abc import Sequence
 
 from ballbeam.config import Config
-from ballbeam.errors import BallbeamError
+from ballbeam.errors import BallbeamError, BusError
 from ballbeam.protocol.frames import FrameContract
+from ballbeam.protocol.secoc import FrameAuthenticator
 from ballbeam.runtime.bus import open_bus
 from ballbeam.runtime.peer_link import PeerLink
 from ballbeam.runtime.process import (
     add_config_arguments,
+    add_secret_argument,
     apply_scheduling,
     config_from_arguments,
     configure_logging,
     resolve_config_argument,
+    secret_from_arguments,
     settle_heap,
 )
 from ballbeam.runtime.stop import StopFlag
@@ -29,14 +32,23 @@ log = logging.getLogger("ballbeam.emulator")
 EXIT_USAGE = 2
 
 
-def run_emulator(config: Config) -> None:
+def run_emulator(config: Config, secret: bytes | None = None) -> None:
     contract = FrameContract.load()
+    auth = None
+    if config.bus.authenticated:
+        if secret is None:
+            raise BusError(
+                f"bus.authenticate is on ({config.bus.interface}) but the emulator has no run "
+                "secret: `ballbeam run` hands one to both processes; alone, pass the same 32 "
+                "bytes to both with --secret-fd N, or set bus.authenticate=false"
+            )
+        auth = FrameAuthenticator(secret)
     stop = StopFlag().install()
     if config.run.mode == "realtime":  # lock-step has no deadlines to protect
         apply_scheduling(config.plant.cpu, config.plant.realtime_priority)
     peer_link = PeerLink.from_environment()
     bus = open_bus(config.bus)
-    emulator = PlantEmulator(config, bus, contract, peer_link)
+    emulator = PlantEmulator(config, bus, contract, peer_link, auth)
     settle_heap()
     try:
         if config.run.mode == "lockstep":
@@ -54,11 +66,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         prog="python -m ballbeam_emulator", description="The SRV02 ball-and-beam plant emulator."
     )
     add_config_arguments(parser)
+    add_secret_argument(parser)
     args = parser.parse_args(argv)
     configure_logging()
     try:
         resolve_config_argument(args)
-        run_emulator(config_from_arguments(args))
+        config = config_from_arguments(args)
+        run_emulator(config, secret_from_arguments(args))
     except BallbeamError as error:
         print(f"ballbeam-emulator: error: {error}", file=sys.stderr)
         return EXIT_USAGE

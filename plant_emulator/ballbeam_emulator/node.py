@@ -5,6 +5,10 @@ when it arrives (the physics is advanced to that instant first), like a DAC upda
 Lock-step: one control period per valid command answering the latest sample; with no answer
 the sample is sent again, so a lost frame costs time, never determinism.
 Either way a watchdog zeroes the voltage when valid commands stop.
+
+With an authenticator (``bus.authenticate``) every frame sent is a SecOC-style CAN FD frame
+and only commands with a right MAC and a fresh freshness value are obeyed (protocol/secoc.py);
+the freshness, not the 8-bit counter, then orders the commands (across daemon restarts too).
 """
 
 from __future__ import annotations
@@ -32,13 +36,13 @@ from ballbeam.protocol.frames import (
     VoltageCommand,
     next_counter,
 )
+from ballbeam.protocol.secoc import CLASSIC_LENGTH, FrameAuthenticator
 from ballbeam.runtime.bus import recv_frame
 from ballbeam.runtime.peer_link import PeerLink
 from ballbeam.runtime.stop import StopFlag
 from ballbeam.runtime.ticker import Ticker
 
 log = logging.getLogger("ballbeam.emulator")
-
 
 
 @dataclass
@@ -52,6 +56,11 @@ class EmulatorCounters:
     watchdog_trips: int = 0
     missed_periods: int = 0  # sample periods the emulator overran (real time): counter gaps
     peer_lost: int = 0  # times the launcher's link said the daemon died (voltage zeroed)
+    # Authenticated bus: commands refused before the contract, by reason (also in rejected).
+    unauthenticated: int = 0  # no MAC (a classic frame: a stranger's)
+    bad_mac: int = 0
+    replayed: int = 0  # right MAC, freshness not newer than the last accepted
+    out_of_window: int = 0  # right MAC, freshness over a second from this host's clock
 
 
 class PlantEmulator:
@@ -61,8 +70,10 @@ class PlantEmulator:
         bus: can.BusABC,
         contract: FrameContract,
         peer_link: PeerLink | None = None,
+        auth: FrameAuthenticator | None = None,
     ) -> None:
         self.config = config
+        self.auth = auth
         self.peer_link = peer_link
         self.bus = bus
         self.contract = contract
@@ -88,7 +99,16 @@ class PlantEmulator:
 
     # -- frames -------------------------------------------------------------------------------
     def _send(self, arbitration_id: int, data: bytes) -> None:
-        self.bus.send(can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=False))
+        if self.auth is None:
+            message = can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=False)
+        else:
+            message = can.Message(
+                arbitration_id=arbitration_id,
+                data=self.auth.protect(arbitration_id, data),
+                is_extended_id=False,
+                is_fd=True,
+            )
+        self.bus.send(message)
 
     def _send_sample(self) -> None:
         """The sensor frame first (the controller can start its cycle at once), then the
@@ -131,8 +151,17 @@ class PlantEmulator:
         ):
             self.counters.own_or_foreign += 1
             return None
+        data = bytes(message.data)
+        if self.auth is not None:
+            # Before the contract and the counter: a refused frame moves no state.
+            verdict = self.auth.verify(VOLTAGE_COMMAND_ID, data)
+            if verdict != "ok":
+                setattr(self.counters, verdict, getattr(self.counters, verdict) + 1)
+                self.counters.rejected += 1
+                return None
+            data = data[:CLASSIC_LENGTH]
         try:
-            command = self.contract.decode(message.arbitration_id, bytes(message.data))
+            command = self.contract.decode(message.arbitration_id, data)
         except FrameError:
             self.counters.rejected += 1
             return None
@@ -141,7 +170,9 @@ class PlantEmulator:
         if loss and self.fault_rng.random() < loss:
             self.counters.dropped_by_injection += 1
             return None
-        if self.command_check.classify(command.counter) != "ok":
+        # Authenticated, the freshness has ordered the commands already (across daemon
+        # restarts too); the 8-bit counter is the classic contract's.
+        if self.auth is None and self.command_check.classify(command.counter) != "ok":
             self.counters.rejected += 1
             return None
         return command

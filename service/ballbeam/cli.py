@@ -17,6 +17,7 @@ from ballbeam.errors import BallbeamError
 from ballbeam.runtime.exit_codes import HELP as EXIT_CODES_HELP
 from ballbeam.runtime.process import (
     add_config_arguments,
+    add_secret_argument,
     config_from_arguments,
     configure_logging,
     resolve_config_argument,
@@ -150,14 +151,15 @@ def command_daemon(args: argparse.Namespace) -> int:
     from ballbeam.runtime.daemon.loop import PlantLostError
     from ballbeam.runtime.daemon.node import run_daemon
     from ballbeam.runtime.exit_codes import EXIT_PLANT_LOST, exit_code
-    from ballbeam.runtime.process import new_log_path
+    from ballbeam.runtime.process import new_log_path, secret_from_arguments
 
     configure_logging()
     config = config_from_arguments(args)
     live_port = _live_port(args)
     log_path = Path(args.log) if args.log else new_log_path(config.run.log_dir, config.plan.kind)
+    secret = secret_from_arguments(args)
     try:
-        end_reason = run_daemon(config, log_path, args.config, live_port)
+        end_reason = run_daemon(config, log_path, args.config, live_port, secret)
     except PlantLostError as error:
         print(f"ballbeam: error: {error}", file=sys.stderr)
         return EXIT_PLANT_LOST
@@ -170,10 +172,12 @@ def command_daemon(args: argparse.Namespace) -> int:
 
 
 def command_emulator(args: argparse.Namespace) -> int:
+    from ballbeam.runtime.process import secret_from_arguments
     from ballbeam_emulator.main import run_emulator
 
     configure_logging()
-    run_emulator(config_from_arguments(args))
+    config = config_from_arguments(args)
+    run_emulator(config, secret_from_arguments(args))
     return 0
 
 
@@ -496,6 +500,7 @@ def build_parser() -> argparse.ArgumentParser:
         "daemon", help="run the controller daemon alone", epilog=EXIT_CODES_HELP
     )
     add_config_arguments(daemon)
+    add_secret_argument(daemon)
     daemon.add_argument("--log", metavar="MCAP", help="log file (default: a new one in logs/)")
     _add_live_arguments(daemon)
     daemon.set_defaults(handler=command_daemon)
@@ -588,6 +593,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     emulator = commands.add_parser("emulator", help="run the plant emulator alone")
     add_config_arguments(emulator)
+    add_secret_argument(emulator)
     emulator.set_defaults(handler=command_emulator)
     return parser
 

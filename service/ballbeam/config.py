@@ -438,6 +438,21 @@ class BusSection(_Section):
         False, description="permit a multicast group whose traffic leaves this host"
     )
     options: dict[str, str | int | float | bool] = Field(default_factory=dict)
+    authenticate: bool | None = Field(
+        None,
+        description=(
+            "SecOC-style frames (CAN FD: classic payload + freshness + truncated HMAC, keyed "
+            "by a per-run secret); default: on for udp_multicast and virtual, off otherwise "
+            "(classic 8-byte E2E frames, the DBC's contract for real CAN hardware)"
+        ),
+    )
+
+    @property
+    def authenticated(self) -> bool:
+        """Whether this bus carries authenticated frames (``authenticate`` resolved)."""
+        if self.authenticate is not None:
+            return self.authenticate
+        return self.interface in ("udp_multicast", "virtual")
 
     @model_validator(mode="after")
     def _known_options(self) -> BusSection:

@@ -28,7 +28,9 @@ from ballbeam.config import DEFAULT_BUS_GROUP, load_config
 from ballbeam.evaluation.summary import summarise
 from ballbeam.logs.reader import RunLog, read_log
 from ballbeam.protocol.frames import VOLTAGE_COMMAND_ID, FrameContract, VoltageCommand
+from ballbeam.protocol.secoc import AUTHENTICATED_LENGTH, SECRET_BYTES, FrameAuthenticator
 from ballbeam.runtime.bus import IPV6_MULTICAST_ALL, free_udp_port, isolated_group, multicast_scope
+from ballbeam.runtime.launcher import secret_pipe
 from ballbeam.runtime.peer_link import PEER_LINK_ENV, peer_link_pipe
 
 from ..conftest import PAPER, REPO, ballbeam_argv
@@ -172,8 +174,10 @@ class BusWatch:
 def decoded(heard: Heard) -> object | None:
     if heard.is_extended_id:
         return None
+    # An authenticated frame carries the classic one first (the watch does not check MACs).
+    data = heard.data[:8] if len(heard.data) == AUTHENTICATED_LENGTH else heard.data
     try:
-        return CONTRACT.decode(heard.arbitration_id, heard.data)
+        return CONTRACT.decode(heard.arbitration_id, data)
     except ValueError:
         return None
 
@@ -253,6 +257,9 @@ class Bench:
             *extra,
         ]
         self.config = load_config(PAPER, self.overrides)
+        # The run secret, handed to both processes as `ballbeam run` does (an inherited pipe);
+        # the test keeps it, to play a second holder of the key when it wants to.
+        self.secret = secrets.token_bytes(SECRET_BYTES) if self.config.bus.authenticated else None
         self.log_path = tmp / f"{mode}-{secrets.token_hex(4)}.mcap"
         self.watch = BusWatch(self.group, self.port) if watch else None
         self._files: list[Any] = []
@@ -286,12 +293,25 @@ class Bench:
         # stderr to a file: a pipe nobody reads could fill up and stall the process.
         stream = (self.tmp / f"{name}-{secrets.token_hex(3)}.stderr").open("w+b")
         self._files.append(stream)
-        process = subprocess.Popen(
-            argv, stdout=subprocess.PIPE, stderr=stream, cwd=REPO,
-            pass_fds=() if pass_fd is None else (pass_fd,), env=env,
-        )
+        fds = () if pass_fd is None else (pass_fd,)
+        secret_fd = secret_pipe(self.secret) if self.secret is not None else None
+        if secret_fd is not None:
+            fds = (*fds, secret_fd)
+            argv = [*argv, "--secret-fd", str(secret_fd)]
+        try:
+            process = subprocess.Popen(
+                argv, stdout=subprocess.PIPE, stderr=stream, cwd=REPO, pass_fds=fds, env=env,
+            )
+        finally:
+            if secret_fd is not None:
+                os.close(secret_fd)
         process.stderr_file = stream  # type: ignore[attr-defined]
         return process
+
+    def authenticator(self) -> FrameAuthenticator:
+        """A node holding this run's secret (a second writer, when the test sends with it)."""
+        assert self.secret is not None, "the bench's bus is not authenticated"
+        return FrameAuthenticator(self.secret)
 
     @staticmethod
     def stderr(process: subprocess.Popen[bytes]) -> str:

@@ -212,6 +212,7 @@ def test_a_run_that_breaks_its_angle_bound_exits_1(tmp_path: Path) -> None:
     [
         ("completed", False, 0), ("SIGTERM", False, 0), ("completed", True, 1),
         ("recorder_failed", False, 1), ("plant_lost", False, 3), ("plant_silent", True, 3),
+        ("second_writer", False, 4), ("second_writer", True, 4),
     ],
 )
 def test_exit_codes_follow_the_documented_table(

@@ -44,6 +44,7 @@ def _rows(topic: str, n: int) -> list[tuple[Any, ...]]:
         elif topic == "/reference":
             rows.append((k, *state, 0.0))
         elif topic == "/truth":
+            # /truth carries the plant's own clock since ef49084 (sample_index, plant_time_s)
             rows.append((k % 256, *state, k, k * PERIOD_NS * 1e-9))
         elif topic == "/timing":
             rows.append((k, k * PERIOD_NS, k * PERIOD_NS, k * PERIOD_NS + 1000, 0, 0))

@@ -38,8 +38,17 @@ def test_lost_frames_are_survived_and_visible(
     status = outcome.log.topics["/sensor"].values["status"]
     assert not (status & STATUS_WATCHDOG).any(), "the plant's watchdog tripped"
     assert outcome.emulator["watchdog_trips"] <= 1  # the one at the end, after the daemon left
+    # The sensor counter counts the plant's sample periods (ef49084): a period the emulator's
+    # process was not run in time is never sent, and the daemon sees it as a lost frame. That
+    # is the machine's stall, not the bus's loss; the bounds below are on the frames lost on
+    # the bus. (Measured under other jobs' load on this 2-core machine: a command_loss run
+    # with 6 "lost" sensor frames had 6 missed plant periods; one in a full fault run had 13,
+    # over the old bound of 5; clean real-time runs missed 0-50 periods in
+    # bench/secoc_attack.py.)
+    missed = summary["plant_missed_periods"] or 0
+    lost_on_bus = summary["frames_lost"] - missed
     if loss == "sensor_loss":
-        assert 100 <= summary["frames_lost"] - summary["plant_missed_periods"] <= 350, summary
+        assert 100 <= lost_on_bus <= 350, summary
         meta = summary_meta(outcome.log)
         assert summary["coasted_cycles"] + int(meta["fault_cycles"]) >= 0.9 * summary["frames_lost"]
         # Truth still comes for every sample; one whose sensor frame was lost is logged when
@@ -53,9 +62,7 @@ def test_lost_frames_are_survived_and_visible(
     else:
         # Invisible to the controller by design (see the module docstring): its sensor stream
         # is complete, and the emulator's own count shows the commands it never applied.
-        # (Counters count the plant's periods: those it overran itself are gaps too, counted
-        # apart as plant_missed_periods; a machine this busy makes a few.)
-        assert summary["frames_lost"] - summary["plant_missed_periods"] <= 5, summary
+        assert lost_on_bus <= 5, summary
         assert outcome.emulator["commands_applied"] + dropped <= len(outcome.log.topics["/can/tx"])
     assert verify(outcome.log).ok
     figure(
@@ -64,6 +71,7 @@ def test_lost_frames_are_survived_and_visible(
             "settle_s": summary["settle_time_s"],
             "dropped": dropped,
             "frames_lost": summary["frames_lost"],
+            "plant_missed_periods": missed,
             "coasted_cycles": summary["coasted_cycles"],
             "faults": summary["faults"],
         },

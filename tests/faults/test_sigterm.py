@@ -29,7 +29,8 @@ def test_sigterm_at_a_random_moment_stops_cleanly_at_0v(tmp_path: Path, index: i
         daemon_exit = bench.wait_daemon(30)
         daemon_stderr = bench.stderr(bench.daemon)
         assert bench.stop_emulator() == 0
-        applied = emulator_counters(bench.stderr(bench.emulator))["commands_applied"]
+        counters = emulator_counters(bench.stderr(bench.emulator))
+        applied = counters["commands_applied"]
     assert daemon_exit == 0, daemon_stderr[-2000:]
     assert "Traceback" not in daemon_stderr
     log = read_log(bench.log_path)
@@ -41,6 +42,6 @@ def test_sigterm_at_a_random_moment_stops_cleanly_at_0v(tmp_path: Path, index: i
     assert len(log.topics["/command"]) < round(duration_s * 1000)
     # The plant obeyed every command, the stop included (lock-step too, where the stop
     # answers no particular sample).
-    assert applied == len(log.topics["/command"]) + len(stops), applied
+    assert applied == len(log.topics["/command"]) + len(stops), counters
     assert verify(log).ok
     assert summarise(log)["truncated"] is False

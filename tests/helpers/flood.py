@@ -22,6 +22,17 @@ What it sends (seeded):
 - ``raw_datagram``: UDP datagrams on the group that are not python-can frames at all (random
   bytes; msgpack that is not a frame; a frame whose id is not a number).
 
+``--attack`` sends what an authenticated bus (protocol/secoc.py) must refuse instead, from a
+process that does not hold the run's secret:
+
+- ``forged_mac``: 24-byte CAN FD frames on our four ids with valid classic payloads (right CRC,
+  wild values: ±5 V enabled commands, full-scale counts, truth at ±5 rad), a fresh freshness
+  value and a MAC under a key of its own;
+- ``replayed``: authenticated frames of the run heard on the bus, sent again (old ones and the
+  very latest, i.e. replayed and reordered), unchanged;
+- ``classic_valid``: well-formed classic 8-byte frames on our ids (a right CRC, no MAC);
+- ``random``: the noise kinds above, mixed.
+
 Interface-local groups only (ff11::, scope 1), like the bench: nothing leaves the host.
 """
 
@@ -49,6 +60,7 @@ from ballbeam.protocol.frames import (
     FrameContract,
     e2e_profile5_crc,
 )
+from ballbeam.protocol.secoc import AUTHENTICATED_LENGTH, FrameAuthenticator
 from ballbeam.runtime.bus import open_bus
 
 OUR_IDS = (VOLTAGE_COMMAND_ID, SENSOR_ID, TRUTH_ANGLE_ID, TRUTH_BALL_ID)
@@ -62,6 +74,63 @@ KINDS = (
     ("error_frame", 3),
     ("raw_datagram", 4),
 )
+
+
+ATTACK_KINDS = (("forged_mac", 30), ("replayed", 40), ("classic_valid", 15), ("random", 15))
+REPLAY_KEPT = 4096
+
+
+class Attacker:
+    """What ``--attack`` sends: forged and replayed authenticated frames, valid classic ones."""
+
+    def __init__(self, rng: random.Random, contract: FrameContract) -> None:
+        self.rng = rng
+        self.contract = contract
+        self.forger = FrameAuthenticator(rng.randbytes(32))  # not the run's secret
+        self.heard: list[can.Message] = []
+
+    def listen(self, bus: can.BusABC, limit: int) -> None:
+        """Keep authenticated frames heard since the last call (at most ``limit``)."""
+        for _ in range(limit):
+            try:
+                message = bus.recv(timeout=0.0)
+            except can.CanOperationError:
+                continue
+            if message is None:
+                return
+            data = bytes(message.data)
+            if (
+                len(data) == AUTHENTICATED_LENGTH
+                and not message.is_extended_id
+                and not self.forger.authentic(message.arbitration_id, data)  # not our own
+            ):
+                self.heard.append(message)
+                if len(self.heard) > REPLAY_KEPT:
+                    del self.heard[: REPLAY_KEPT // 2]
+
+    def make(self, kind: str) -> tuple[str, can.Message | bytes]:
+        rng = self.rng
+        if kind == "replayed" and self.heard:
+            # Half the time one of the latest frames (a reorder), else any older one.
+            if rng.random() < 0.5:
+                pick = self.heard[-rng.randrange(1, min(4, len(self.heard)) + 1)]
+            else:
+                pick = rng.choice(self.heard)
+            return kind, can.Message(arbitration_id=pick.arbitration_id, data=bytes(pick.data),
+                                     is_extended_id=False, is_fd=True)
+        if kind in ("forged_mac", "replayed"):
+            arbitration_id = rng.choice(OUR_IDS)
+            payload = _valid_payload(rng, self.contract, arbitration_id)
+            return "forged_mac", can.Message(
+                arbitration_id=arbitration_id, data=self.forger.protect(arbitration_id, payload),
+                is_extended_id=False, is_fd=True,
+            )
+        if kind == "classic_valid":
+            arbitration_id = rng.choice(OUR_IDS)
+            return kind, can.Message(arbitration_id=arbitration_id, is_extended_id=False,
+                                     data=_valid_payload(rng, self.contract, arbitration_id))
+        noise = rng.choice(("foreign_id", "bad_crc", "wrong_length", "extended_id"))
+        return noise, make_frame(rng, self.contract, noise)
 
 
 def _bad_crc_payload(rng: random.Random, arbitration_id: int) -> bytes:
@@ -165,8 +234,9 @@ def _wait_for_cue(bus: can.BusABC, contract: FrameContract, cue: str, timeout_s:
             continue
         if message is None or message.arbitration_id != wanted or message.is_extended_id:
             continue
+        data = bytes(message.data)[:8]  # an authenticated frame carries the classic one first
         try:
-            frame = contract.decode(message.arbitration_id, bytes(message.data))
+            frame = contract.decode(message.arbitration_id, data)
         except ValueError:
             continue
         if cue == "sensor" or getattr(frame, "enable", False):
@@ -184,6 +254,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--max-seconds", type=float, default=3.0)
     parser.add_argument("--start-on", choices=("command", "sensor"), default="command")
     parser.add_argument("--wait", type=float, default=30.0)
+    parser.add_argument(
+        "--attack", action="store_true",
+        help="forged, replayed and valid-classic frames against an authenticated bus",
+    )
     parser.add_argument(
         "--raw-weight",
         type=int,
@@ -215,14 +289,26 @@ def main(argv: list[str] | None = None) -> int:
             return 1
         kinds = [kind for kind, _ in KINDS]
         weights = [args.raw_weight if kind == "raw_datagram" else weight for kind, weight in KINDS]
+        attacker = Attacker(rng, contract) if args.attack else None
+        if attacker is not None:
+            # Not niced: the issue's rate is 5 kHz, and the run's processes are SCHED_FIFO in
+            # real time, so the attacker cannot starve them (niced on a loaded 2-core machine
+            # it reached 2.9 kHz).
+            kinds = [kind for kind, _ in ATTACK_KINDS]
+            weights = [weight for _, weight in ATTACK_KINDS]
         per_burst = max(1, args.rate_hz * BURST_PERIOD_NS // 1_000_000_000)
         start_ns = due_ns = time.monotonic_ns()
         stop_ns = start_ns + int(args.max_seconds * 1e9)
         total = 0
         while total < args.max_frames and due_ns < stop_ns:
+            if attacker is not None:
+                attacker.listen(bus, 64)
             for _ in range(min(per_burst, args.max_frames - total)):
                 kind = rng.choices(kinds, weights)[0]
-                item = make_frame(rng, contract, kind)
+                if attacker is not None:
+                    kind, item = attacker.make(kind)
+                else:
+                    item = make_frame(rng, contract, kind)
                 try:
                     if isinstance(item, bytes):
                         raw.sendto(item, (args.channel, args.port))

@@ -11,6 +11,8 @@ code   meaning
        died (``ballbeam run``: the log is then made whole and named)
 3      the plant was lost: no sensor frames for ``controller.plant_lost_s`` (the run is
        recorded, 0 V commanded, the file finished)
+4      a second writer commanded the plant (``second_writer``: a valid command frame the daemon
+       never sent; the run stopped at 0 V at once)
 =====  ==========================================================================================
 """
 
@@ -22,13 +24,15 @@ EXIT_OK: Final = 0
 EXIT_FAILED: Final = 1
 EXIT_USAGE: Final = 2
 EXIT_PLANT_LOST: Final = 3
+EXIT_SECOND_WRITER: Final = 4
 
 PLANT_LOST_REASONS: Final = frozenset({"plant_lost", "plant_silent"})
 STOPPED_ON_REQUEST: Final = frozenset({"completed", "SIGINT", "SIGTERM"})
 
 HELP: Final = (
     "exit codes: 0 completed within bounds; 1 not completed, or the angle bound broken (run); "
-    "2 usage, bad input or the daemon died; 3 the plant was lost"
+    "2 usage, bad input or the daemon died; 3 the plant was lost; 4 a second writer "
+    "commanded the plant (stopped at 0 V)"
 )
 
 
@@ -36,6 +40,8 @@ def exit_code(end_reason: str, bound_broken: bool = False) -> int:
     """The exit code of a run that ended with ``end_reason``."""
     if end_reason in PLANT_LOST_REASONS:
         return EXIT_PLANT_LOST
+    if end_reason == "second_writer":
+        return EXIT_SECOND_WRITER
     if end_reason not in STOPPED_ON_REQUEST or bound_broken:
         return EXIT_FAILED
     return EXIT_OK

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import secrets
 import signal
 import subprocess
 import sys
@@ -21,14 +22,20 @@ from mcap.writer import MCAP0_MAGIC
 
 from ballbeam.config import Config, load_config
 from ballbeam.errors import BallbeamError
+from ballbeam.protocol.secoc import SECRET_BYTES
 from ballbeam.runtime.bus import check_stays_on_host, free_udp_port, isolated_group
-from ballbeam.runtime.exit_codes import EXIT_FAILED, EXIT_OK, EXIT_PLANT_LOST
+from ballbeam.runtime.exit_codes import (
+    EXIT_FAILED,
+    EXIT_OK,
+    EXIT_PLANT_LOST,
+    EXIT_SECOND_WRITER,
+)
 from ballbeam.runtime.peer_link import PEER_LINK_ENV, peer_link_pipe
 from ballbeam.runtime.process import new_log_path, realtime_permitted, realtime_refused_message
 
 STOP_GRACE_S = 5.0
 # The daemon's exits after which its run is recorded whole (summarised by ``ballbeam run``).
-RECORDED_RUN_CODES = frozenset({EXIT_OK, EXIT_FAILED, EXIT_PLANT_LOST})
+RECORDED_RUN_CODES = frozenset({EXIT_OK, EXIT_FAILED, EXIT_PLANT_LOST, EXIT_SECOND_WRITER})
 STARTUP_ALLOWANCE_S = 30.0
 
 
@@ -57,6 +64,18 @@ def _stop(process: subprocess.Popen[str]) -> int:
         except subprocess.TimeoutExpired:
             process.kill()
     return process.wait()
+
+
+def secret_pipe(secret: bytes) -> int:
+    """A pipe's read end holding ``secret``, its write end closed: a child inherits it with
+    ``pass_fds`` and reads the secret with ``--secret-fd N`` (the number, never the secret, is
+    on its command line). 32 bytes fit in any pipe buffer, so the write never blocks."""
+    read_fd, write_fd = os.pipe()
+    try:
+        os.write(write_fd, secret)
+    finally:
+        os.close(write_fd)
+    return read_fd
 
 
 def _recover_cut_log(log_path: Path) -> str:
@@ -125,25 +144,37 @@ def launch_run(
     # The dead-man link (runtime/peer_link.py): the emulator zeroes the drive within a sensor
     # period of the daemon's death, whatever kills it.
     link_read, link_write = peer_link_pipe()
+    # The run's frame-authentication key (protocol/secoc.py): to each child through a pipe of
+    # its own, never on a command line, in the environment or in the log.
+    secret = secrets.token_bytes(SECRET_BYTES) if config.bus.authenticated else None
+    emulator_secret = secret_pipe(secret) if secret is not None else None
+    daemon_secret = secret_pipe(secret) if secret is not None else None
+    del secret
+
+    def secret_args(fd: int | None) -> list[str]:
+        return [] if fd is None else ["--secret-fd", str(fd)]
+
     try:
         emulator = subprocess.Popen(
-            [*base, "ballbeam_emulator", *config_args],
+            [*base, "ballbeam_emulator", *config_args, *secret_args(emulator_secret)],
             stdout=subprocess.DEVNULL,
             stderr=subprocess.PIPE,
             text=True,
-            pass_fds=(link_read,),
+            pass_fds=tuple(fd for fd in (link_read, emulator_secret) if fd is not None),
             env={**os.environ, PEER_LINK_ENV: str(link_read)},
         )
         daemon = subprocess.Popen(
-            [*base, "ballbeam", "daemon", *config_args, "--log", str(log_path), *live_args],
+            [*base, "ballbeam", "daemon", *config_args, "--log", str(log_path), *live_args,
+             *secret_args(daemon_secret)],
             stdout=subprocess.DEVNULL,
             stderr=subprocess.PIPE,
             text=True,
-            pass_fds=(link_write,),
+            pass_fds=tuple(fd for fd in (link_write, daemon_secret) if fd is not None),
         )
     finally:
-        os.close(link_read)
-        os.close(link_write)
+        for fd in (link_read, link_write, emulator_secret, daemon_secret):
+            if fd is not None:
+                os.close(fd)
     if on_started is not None:
         on_started({"emulator": emulator, "daemon": daemon})
     budget_s = (

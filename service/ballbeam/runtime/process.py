@@ -154,6 +154,32 @@ def add_config_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_secret_argument(parser: argparse.ArgumentParser) -> None:
+    """``--secret-fd N``: read the run's 32-byte secret from inherited file descriptor N."""
+    parser.add_argument(
+        "--secret-fd",
+        type=int,
+        metavar="N",
+        help="read the run's 32-byte frame-authentication secret from file descriptor N "
+        "(ballbeam run passes a pipe; alone: --secret-fd 0 < secret.bin). Never put a "
+        "secret on the command line",
+    )
+
+
+def secret_from_arguments(args: argparse.Namespace) -> bytes | None:
+    """The secret ``--secret-fd`` names (read once, the descriptor closed), or None."""
+    from ballbeam.errors import BusError
+    from ballbeam.protocol.secoc import read_secret
+
+    fd = getattr(args, "secret_fd", None)
+    if fd is None:
+        return None
+    try:
+        return read_secret(fd)
+    except (OSError, ValueError) as error:
+        raise BusError(f"cannot read the run secret from --secret-fd {fd}: {error}") from error
+
+
 def resolve_config_argument(args: argparse.Namespace) -> None:
     """Turn ``args.config`` into the absolute path of the file it names: child processes and
     the log then get the file itself, wherever the name led."""

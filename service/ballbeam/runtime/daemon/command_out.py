@@ -9,20 +9,27 @@ import can
 from ballbeam.logs.recording import RunRecording
 from ballbeam.logs.topics import CAN_TX, COMMAND, CommandRecord
 from ballbeam.protocol.frames import VOLTAGE_COMMAND_ID, FrameContract, next_counter
+from ballbeam.protocol.secoc import FrameAuthenticator
 from ballbeam.runtime.daemon.intake import SentCommands, frame_record
 
 SHUTDOWN_REPEATS = 3  # the final 0 V is sent a few times: a frame can be lost
 
 
 class CommandOut:
+    """Sends the voltage commands: SecOC-style frames with ``auth`` (protocol/secoc.py; the
+    authenticator then remembers what was sent), classic 8-byte frames without (noted in
+    ``sent`` for the intake to tell its echoes from someone else's frames)."""
+
     def __init__(
         self,
         bus: can.BusABC,
         contract: FrameContract,
         recording: RunRecording,
         sent: SentCommands | None = None,
+        auth: FrameAuthenticator | None = None,
     ) -> None:
         self.bus = bus
+        self.auth = auth
         self.sent = sent if sent is not None else SentCommands()
         self.contract = contract
         self.recording = recording
@@ -62,8 +69,19 @@ class CommandOut:
             self.counter = next_counter(self.counter)
 
     def _send_bytes(self, data: bytes, log_time_ns: int, cycle: int) -> None:
-        message = can.Message(arbitration_id=VOLTAGE_COMMAND_ID, data=data, is_extended_id=False)
-        self.sent.note(data)  # before sending: the echo may come back at once
+        if self.auth is not None:
+            # A fresh freshness value each time: a lock-step resend is a new frame, not a replay.
+            message = can.Message(
+                arbitration_id=VOLTAGE_COMMAND_ID,
+                data=self.auth.protect(VOLTAGE_COMMAND_ID, data),
+                is_extended_id=False,
+                is_fd=True,
+            )
+        else:
+            message = can.Message(
+                arbitration_id=VOLTAGE_COMMAND_ID, data=data, is_extended_id=False
+            )
+            self.sent.note(data)  # before sending: the echo may come back at once
         try:
             self.bus.send(message)
         except can.CanError as error:

@@ -6,6 +6,15 @@ daemon's own commands looped back by the bus (the bytes it sent) are counted and
 command frame it did not send is someone else's: recorded and counted as rejected
 (``rejected_foreign_command``); anything else is recorded as received and counted as rejected
 (never fatal).
+
+On an authenticated bus (protocol/secoc.py) every frame is judged by its MAC and freshness
+first: forged (``rejected_bad_mac``), replayed or reordered (``rejected_replayed``,
+``rejected_out_of_window``) and classic frames with no MAC (``rejected_unauthenticated``) are
+refused before the contract and the counter check, so they move no state and never
+desynchronise the real stream; truth comes only from authenticated frames. A command frame with
+a right MAC that the daemon never sent was made by another holder of the run's secret: a
+second writer (``second_writer_frames``; the loop stops the run). On a classic bus a command
+frame with a right CRC that the daemon did not send lately counts the same way.
 """
 
 from __future__ import annotations
@@ -27,6 +36,12 @@ from ballbeam.protocol.frames import (
     TruthAngle,
     TruthBall,
 )
+from ballbeam.protocol.secoc import (
+    AUTHENTICATED_LENGTH,
+    CLASSIC_LENGTH,
+    FrameAuthenticator,
+    OwnVerdict,
+)
 
 MAX_RECORDED_REJECTIONS = 1000  # per reason: beyond this only the count grows (no log floods)
 
@@ -43,11 +58,18 @@ class SentCommands:
     each command within a period or so; a bus that does not simply lets old entries fall off.
     """
 
-    def __init__(self, keep: int = 64) -> None:
+    def __init__(self, keep: int = 64, recent: int = 512) -> None:
         self._pending: deque[bytes] = deque(maxlen=keep)
+        # Classic bus: a frame that is one of these but already echoed is a replay of ours,
+        # not a second writer's (half a second of commands at 1 kHz).
+        self._recent: deque[bytes] = deque(maxlen=recent)
 
     def note(self, data: bytes) -> None:
         self._pending.append(data)
+        self._recent.append(data)
+
+    def sent_lately(self, data: bytes) -> bool:
+        return data in self._recent
 
     def claim(self, data: bytes) -> bool:
         """True (and forgotten) if ``data`` is one of ours not yet echoed."""
@@ -65,10 +87,13 @@ class SensorIntake:
         recording: RunRecording,
         sent: SentCommands | None = None,
         sample_period_s: float = 1e-3,
+        auth: FrameAuthenticator | None = None,
     ) -> None:
         self.contract = contract
         self.recording = recording
         self.sent = sent if sent is not None else SentCommands()
+        self.auth = auth
+        self.second_writer_frames = 0  # valid command frames this daemon never sent
         self.sensor_check = CounterCheck()
         self.latest: SensorFrame | None = None
         self.fresh = False  # a sample arrived that no cycle has used yet
@@ -97,20 +122,17 @@ class SensorIntake:
         # The contract is on standard-id data frames: an extended id that happens to have
         # the same number, a remote frame or an error frame is someone else's.
         foreign = message.is_extended_id or message.is_remote_frame or message.is_error_frame
-        if (
-            message.arbitration_id == VOLTAGE_COMMAND_ID
-            and not foreign
-            and self.sent.claim(bytes(message.data))
-        ):
-            self.own_frames += 1  # our own command looped back by the bus
-            return None
+        data = bytes(message.data)
+        command = message.arbitration_id == VOLTAGE_COMMAND_ID and not foreign
+        own: OwnVerdict | None = None
+        if command:
+            own = self._own(data)
+            if own == "echo":
+                self.own_frames += 1  # our own command looped back by the bus
+                return None
         self.recording.write(CAN_RX, log_time_ns, frame_record(message))
-        if message.arbitration_id == VOLTAGE_COMMAND_ID and not foreign:
-            self.reject(
-                "foreign_command",
-                f"a command frame this daemon did not send: {bytes(message.data).hex()}",
-                log_time_ns, cycle,
-            )
+        if own is not None:
+            self._not_ours(own, data, log_time_ns, cycle)
             return None
         if foreign:
             kind = ("extended-id" if message.is_extended_id
@@ -118,10 +140,26 @@ class SensorIntake:
             self.reject("foreign", f"{kind} frame 0x{message.arbitration_id:X}", log_time_ns,
                         cycle)
             return None
+        auth = self.auth
+        authenticated = auth is None  # a classic bus: the contract is all there is
+        if auth is not None and len(data) == AUTHENTICATED_LENGTH:
+            auth_verdict = auth.verify(message.arbitration_id, data)
+            if auth_verdict != "ok":
+                self.reject(auth_verdict, f"frame 0x{message.arbitration_id:03X}: {auth_verdict}",
+                            log_time_ns, cycle)
+                return None
+            data = data[:CLASSIC_LENGTH]
+            authenticated = True
         try:
-            frame = self.contract.decode(message.arbitration_id, bytes(message.data))
+            # Any other length is judged by the contract first, so noise keeps its reasons.
+            frame = self.contract.decode(message.arbitration_id, data)
         except FrameRejectedError as error:
             self.reject(error.reason, str(error), log_time_ns, cycle)
+            return None
+        if not authenticated:
+            # A well-formed classic frame on an authenticated bus: a stranger's.
+            self.reject("unauthenticated", f"frame 0x{message.arbitration_id:03X} has no MAC",
+                        log_time_ns, cycle)
             return None
         if isinstance(frame, SensorFrame):
             verdict = self.sensor_check.classify(frame.counter)
@@ -153,3 +191,32 @@ class SensorIntake:
             self.reject("direction", f"unexpected {type(frame).__name__} frame", log_time_ns,
                         cycle)
         return None
+
+    def _own(self, data: bytes) -> OwnVerdict:
+        """Whose is this command frame: ``"echo"`` (ours, heard back once), ``"replayed"``
+        (ours, heard again), ``"not_sent"`` (valid, never ours: a second writer) or
+        ``"invalid"`` (no right MAC, or on a classic bus no right CRC: a stranger's)."""
+        if self.auth is not None:
+            return self.auth.own_frame(VOLTAGE_COMMAND_ID, data)
+        if self.sent.claim(data):
+            return "echo"
+        if self.sent.sent_lately(data):
+            return "replayed"
+        try:
+            self.contract.decode(VOLTAGE_COMMAND_ID, data)
+        except FrameRejectedError:
+            return "invalid"
+        return "not_sent"
+
+    def _not_ours(self, own: OwnVerdict, data: bytes, log_time_ns: int, cycle: int) -> None:
+        """A command frame the daemon did not send (this time): recorded by the caller,
+        counted here; a valid one counts towards a second writer."""
+        detail = {
+            "replayed": "a replay of a command this daemon sent",
+            "invalid": "a stranger's (no valid MAC or CRC)",
+            "not_sent": "valid, but never sent by this daemon: a second writer",
+        }.get(own, own)
+        self.reject("foreign_command", f"a command frame this daemon did not send ({detail}): "
+                    f"{data.hex()}", log_time_ns, cycle)
+        if own == "not_sent":
+            self.second_writer_frames += 1

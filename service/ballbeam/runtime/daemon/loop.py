@@ -39,6 +39,7 @@ from ballbeam.logs.topics import (
     TimingRecord,
 )
 from ballbeam.protocol.frames import SENSOR_ID, CounterCheck, FrameContract
+from ballbeam.protocol.secoc import FrameAuthenticator
 from ballbeam.runtime.bus import recv_frame
 from ballbeam.runtime.daemon.command_out import CommandOut
 from ballbeam.runtime.daemon.intake import SensorIntake, SentCommands
@@ -49,6 +50,11 @@ log = logging.getLogger("ballbeam.daemon")
 
 PHASE_PROBE_FRAMES = 20
 PHASE_PROBE_S = 0.05
+# Valid command frames this daemon never sent before the run ends as "second_writer": one on an
+# authenticated bus (only a holder of the run's secret can make one), three on a classic bus
+# (a random frame passes the CRC-16 once in 65,536 tries).
+SECOND_WRITER_FRAMES_AUTHENTICATED = 1
+SECOND_WRITER_FRAMES_CLASSIC = 3
 
 
 class PlantLostError(BallbeamError, TimeoutError):
@@ -66,6 +72,8 @@ class DaemonStats:
     command_resends: int = 0
     own_frames: int = 0
     theta_violation_events: int = 0
+    authenticated: bool = False
+    second_writer_frames: int = 0
     rejected: Counter[str] = field(default_factory=Counter)
     end_reason: str = "completed"
 
@@ -90,6 +98,7 @@ class ControllerDaemon:
         contract: FrameContract,
         recording: RunRecording,
         stop: StopFlag,
+        auth: FrameAuthenticator | None = None,
     ) -> None:
         self.config = config
         self.design = design
@@ -102,12 +111,16 @@ class ControllerDaemon:
         sample_period_s = 1.0 / config.plant.sensor_rate_hz * (
             sensor_periods_per_cycle(config) if config.run.mode == "lockstep" else 1
         )
-        self.intake = SensorIntake(contract, recording, sent, sample_period_s)
-        self.commands = CommandOut(bus, contract, recording, sent)
+        self.intake = SensorIntake(contract, recording, sent, sample_period_s, auth)
+        self.commands = CommandOut(bus, contract, recording, sent, auth)
+        self.second_writer_limit = (
+            SECOND_WRITER_FRAMES_AUTHENTICATED if auth is not None
+            else SECOND_WRITER_FRAMES_CLASSIC
+        )
         self.period_ns = config.controller.period_ns
         self.n_cycles = round(config.run.duration_s * config.controller.rate_hz)
         self.state = ControllerState()
-        self._stats = DaemonStats()
+        self._stats = DaemonStats(authenticated=auth is not None)
         self.cycles_since_sensor = 0
         self.in_fault = False
         self.last_output: CycleOutput | None = None
@@ -123,6 +136,7 @@ class ControllerDaemon:
         self._stats.own_frames = self.intake.own_frames
         self._stats.rejected = self.intake.rejected
         self._stats.command_resends = self.commands.resends
+        self._stats.second_writer_frames = self.intake.second_writer_frames
         return self._stats
 
     @property
@@ -143,6 +157,18 @@ class ControllerDaemon:
 
     def _handle(self, message: can.Message) -> None:
         verdict = self.intake.handle(message, self.log_time_ns, self.state.cycle)
+        if (
+            self.intake.second_writer_frames >= self.second_writer_limit
+            and not self.stop.is_set()
+        ):
+            # Someone else commands our plant: stop now (the loop ends this cycle and the
+            # shutdown sends 0 V, disabled, at once).
+            self._fault("second_writer",
+                        f"{self.intake.second_writer_frames} valid command frame(s) this daemon "
+                        "never sent: another writer commands the plant; stopping at 0 V")
+            log.error("a second writer commands the plant: stopping the run at 0 V")
+            self._stats.end_reason = "second_writer"
+            self.stop.set("second_writer")
         if verdict == "repeated" and self.config.run.mode == "lockstep":
             # The plant resent a sample because our answer was lost: answer again without
             # advancing the controller (so determinism survives frame loss).
@@ -351,6 +377,8 @@ class ControllerDaemon:
                 self._handle(message)
                 if time.monotonic_ns() >= drain_until_ns:
                     break
+            if self._stats.end_reason == "second_writer":
+                break  # no further drive: the shutdown commands 0 V now
             self._cycle()
             self._record_timing(tick.deadline_ns, tick.start_ns, tick.skipped)
 

@@ -12,10 +12,12 @@ from typing import TYPE_CHECKING
 
 from ballbeam.assembly import controller_design
 from ballbeam.config import Config
+from ballbeam.errors import BusError
 from ballbeam.logs import design_record
 from ballbeam.logs.recorder import Recorder
 from ballbeam.logs.recording import RunRecording
 from ballbeam.protocol.frames import FrameContract
+from ballbeam.protocol.secoc import FrameAuthenticator
 from ballbeam.runtime.bus import open_bus
 from ballbeam.runtime.daemon.loop import ControllerDaemon
 from ballbeam.runtime.process import (
@@ -32,6 +34,12 @@ if TYPE_CHECKING:
     from ballbeam.runtime.live import LiveView
 
 log = logging.getLogger("ballbeam")
+
+NO_SECRET = (
+    "bus.authenticate is on ({bus}) but the daemon has no run secret: `ballbeam run` hands "
+    "one to both processes; alone, pass the same 32 bytes to both with --secret-fd N (e.g. "
+    "--secret-fd 0 < secret.bin), or set bus.authenticate=false for the classic contract"
+)
 
 
 def with_measured_latency(config: Config) -> tuple[Config, dict[str, str]]:
@@ -69,10 +77,15 @@ def with_measured_latency(config: Config) -> tuple[Config, dict[str, str]]:
 
 
 def run_daemon(
-    config: Config, log_path: Path, config_path: str | None, live_port: int | None = None
+    config: Config,
+    log_path: Path,
+    config_path: str | None,
+    live_port: int | None = None,
+    secret: bytes | None = None,
 ) -> str:
     """Plan, synthesise, open the recorder and the bus, run, finish the file. Returns how the
     run ended (``DaemonStats.end_reason``); PlantLostError if no plant answered at the start.
+    ``secret``: the run's frame-authentication key (needed when ``bus.authenticated``).
 
     With ``live_port``, the run is also served live on ``ws://127.0.0.1:<live_port>``
     (``runtime/live.py``); LiveViewError, before anything else, if the port is taken."""
@@ -82,14 +95,18 @@ def run_daemon(
 
         live = LiveView(live_port)  # its port is checked now; it serves once channels exist
     try:
-        return _run_recorded(config, log_path, config_path, live)
+        return _run_recorded(config, log_path, config_path, live, secret)
     finally:
         if live is not None:
             live.stop()
 
 
 def _run_recorded(
-    config: Config, log_path: Path, config_path: str | None, live: LiveView | None
+    config: Config,
+    log_path: Path,
+    config_path: str | None,
+    live: LiveView | None,
+    secret: bytes | None,
 ) -> str:
     design = controller_design(config)  # before touching the bus: a bad config fails fast
     # The recorder's writer thread shares the GIL; switching sooner bounds how long it can
@@ -127,6 +144,7 @@ def _run_recorded(
                 "period_ns": str(config.controller.period_ns),
                 "sensor_period_ns": str(1_000_000_000 // config.plant.sensor_rate_hz),
                 "bus": f"{config.bus.interface}:{config.bus.channel}",
+                "authenticated": str(config.bus.authenticated).lower(),
                 **{f"scheduling_{key}": value for key, value in scheduling.items()},
             },
         },
@@ -136,13 +154,20 @@ def _run_recorded(
     stop = StopFlag().install()
     summary: dict[str, str] = {}
     try:
+        # After the log is open (an unwritable log is the first thing to hear about), before
+        # the bus: no frame goes out unauthenticated.
+        auth = None
+        if config.bus.authenticated:
+            if secret is None:
+                raise BusError(NO_SECRET.format(bus=config.bus.interface))
+            auth = FrameAuthenticator(secret)
         recording = RunRecording(recorder)  # every channel of the log, the live view's too
         if live is not None:
             live.start()
             log.info("live view on %s (Foxglove: Open connection, Foxglove WebSocket)", live.url)
         bus = open_bus(config.bus)
         try:
-            daemon = ControllerDaemon(config, design, bus, contract, recording, stop)
+            daemon = ControllerDaemon(config, design, bus, contract, recording, stop, auth)
             settle_heap()
             try:
                 stats = daemon.run()

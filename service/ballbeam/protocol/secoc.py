@@ -1,0 +1,158 @@
+"""Authenticated frames on the virtual bus, in the style of AUTOSAR SecOC.
+
+The classic contract (``frames.py``: 8-byte frames, E2E CRC and an 8-bit counter) protects
+against corruption and loss, not against a third process that writes well-formed frames. On a
+bus that carries CAN FD (python-can's ``udp_multicast`` and ``virtual``) each frame of a run is
+therefore sent as a 24-byte CAN FD frame::
+
+    bytes  0..7   the classic payload, unchanged (CRC, counter, signals: the DBC's layout)
+    bytes  8..15  freshness value, uint64 little-endian: the sender's CLOCK_MONOTONIC in ns,
+                  made strictly increasing per sender (one clock for every process of a host)
+    bytes 16..23  MAC: HMAC-SHA256(secret, id (uint32 LE) ‖ freshness ‖ payload), truncated
+                  to 64 bits
+
+keyed by a per-run 32-byte secret the launcher hands to both processes through an inherited
+pipe (never argv, never the environment, never the log).
+
+A receiver accepts a frame of a stream (arbitration id) only if its MAC is right, its freshness
+is strictly greater than the last it accepted on that stream, and within ``window_ns`` of its
+own clock. A forged frame fails the MAC; a replayed or reordered one fails the freshness test;
+neither moves any state, so the real stream goes on being accepted. The window also refuses a
+frame replayed from an old log to a receiver that has just started (no last value yet).
+
+A node also hears its own frames (the bus loops them back). :meth:`FrameAuthenticator.own_echo`
+tells them apart: each freshness the node sent is expected back once. A frame on the node's own
+id with a right MAC that the node did not send comes from another holder of the secret: a
+second writer.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import time
+from collections import deque
+from typing import Final, Literal, TypeAlias
+
+SECRET_BYTES: Final = 32
+CLASSIC_LENGTH: Final = 8
+FRESHNESS_BYTES: Final = 8
+MAC_BYTES: Final = 8
+AUTHENTICATED_LENGTH: Final = CLASSIC_LENGTH + FRESHNESS_BYTES + MAC_BYTES  # a CAN FD length
+DEFAULT_WINDOW_NS: Final = 1_000_000_000
+MAX_SENT_KEPT: Final = 65_536  # own frames remembered (a window's worth at any sane rate)
+
+AuthVerdict: TypeAlias = Literal["ok", "unauthenticated", "bad_mac", "replayed", "out_of_window"]
+OwnVerdict: TypeAlias = Literal["echo", "replayed", "not_sent", "invalid"]
+
+
+class FrameAuthenticator:
+    """Protects outgoing frames and judges incoming ones for one node of one run."""
+
+    __slots__ = ("_echoed", "_key", "_last_accepted", "_last_sent", "_sent", "_sent_set",
+                 "window_ns")
+
+    def __init__(self, secret: bytes, window_ns: int = DEFAULT_WINDOW_NS) -> None:
+        if len(secret) != SECRET_BYTES:
+            raise ValueError(f"the run secret must be {SECRET_BYTES} bytes, got {len(secret)}")
+        self._key = bytes(secret)
+        self.window_ns = window_ns
+        self._last_sent = 0
+        self._last_accepted: dict[int, int] = {}
+        # What this node sent within the window, (id, freshness), and which came back already.
+        self._sent: deque[tuple[int, int]] = deque()
+        self._sent_set: set[tuple[int, int]] = set()
+        self._echoed: set[tuple[int, int]] = set()
+
+    def _mac(self, arbitration_id: int, freshness: bytes, payload: bytes) -> bytes:
+        message = arbitration_id.to_bytes(4, "little") + freshness + payload
+        return hmac.digest(self._key, message, hashlib.sha256)[:MAC_BYTES]
+
+    def protect(self, arbitration_id: int, payload: bytes) -> bytes:
+        """The 24-byte authenticated frame data for a classic 8-byte ``payload``."""
+        if len(payload) != CLASSIC_LENGTH:
+            raise ValueError(f"a classic payload is {CLASSIC_LENGTH} bytes, got {len(payload)}")
+        value = max(self._last_sent + 1, time.monotonic_ns())
+        self._last_sent = value
+        key = (arbitration_id, value)
+        sent = self._sent
+        sent.append(key)
+        self._sent_set.add(key)
+        # Forget what left the window (the freshness is the send time); a bounded memory.
+        while sent and (sent[0][1] < value - self.window_ns or len(sent) > MAX_SENT_KEPT):
+            old = sent.popleft()
+            self._sent_set.discard(old)
+            self._echoed.discard(old)
+        freshness = value.to_bytes(FRESHNESS_BYTES, "little")
+        return payload + freshness + self._mac(arbitration_id, freshness, payload)
+
+    @staticmethod
+    def freshness_of(data: bytes) -> int:
+        return int.from_bytes(data[CLASSIC_LENGTH:CLASSIC_LENGTH + FRESHNESS_BYTES], "little")
+
+    def authentic(self, arbitration_id: int, data: bytes) -> bool:
+        """True when ``data`` is an authenticated frame whose MAC is right (no state change)."""
+        if len(data) != AUTHENTICATED_LENGTH:
+            return False
+        payload = data[:CLASSIC_LENGTH]
+        freshness = data[CLASSIC_LENGTH:CLASSIC_LENGTH + FRESHNESS_BYTES]
+        return hmac.compare_digest(
+            data[CLASSIC_LENGTH + FRESHNESS_BYTES:], self._mac(arbitration_id, freshness, payload)
+        )
+
+    def own_frame(
+        self, arbitration_id: int, data: bytes, now_ns: int | None = None
+    ) -> OwnVerdict:
+        """A frame on one of this node's own ids: ``"echo"`` (one it sent, heard back for the
+        first time), ``"replayed"`` (one it sent, heard again; or a right MAC from outside the
+        window: an old frame), ``"not_sent"`` (a right MAC and a fresh freshness it never
+        sent: another holder of the secret writes this id, a second writer), or
+        ``"invalid"`` (no right MAC: a stranger's)."""
+        if not self.authentic(arbitration_id, data):
+            return "invalid"
+        value = self.freshness_of(data)
+        key = (arbitration_id, value)
+        if key in self._sent_set:
+            if key in self._echoed:
+                return "replayed"
+            self._echoed.add(key)
+            return "echo"
+        now = time.monotonic_ns() if now_ns is None else now_ns
+        oldest_kept = self._sent[0][1] if self._sent else 0
+        if abs(value - now) > self.window_ns or value < oldest_kept:
+            return "replayed"  # older than what this node remembers sending: not a live writer
+        return "not_sent"
+
+    def verify(self, arbitration_id: int, data: bytes, now_ns: int | None = None) -> AuthVerdict:
+        """Judge a frame from a peer; only ``"ok"`` moves the stream's freshness forward."""
+        if len(data) != AUTHENTICATED_LENGTH:
+            return "unauthenticated"
+        if not self.authentic(arbitration_id, data):
+            return "bad_mac"
+        value = self.freshness_of(data)
+        if value <= self._last_accepted.get(arbitration_id, 0):
+            return "replayed"
+        now = time.monotonic_ns() if now_ns is None else now_ns
+        if abs(value - now) > self.window_ns:
+            return "out_of_window"
+        self._last_accepted[arbitration_id] = value
+        return "ok"
+
+
+def read_secret(fd: int) -> bytes:
+    """The run secret from an inherited file descriptor (a pipe the launcher wrote and closed,
+    or a file); the descriptor is closed afterwards. ValueError unless exactly 32 bytes."""
+    import os
+
+    secret = b""
+    try:
+        while len(secret) <= SECRET_BYTES:  # one byte more than needed: longer input is refused
+            chunk = os.read(fd, SECRET_BYTES + 1 - len(secret))
+            if not chunk:
+                break
+            secret += chunk
+    finally:
+        os.close(fd)
+    if len(secret) != SECRET_BYTES:
+        raise ValueError(f"the run secret on fd {fd} must be {SECRET_BYTES} bytes")
+    return secret
