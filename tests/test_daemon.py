@@ -188,7 +188,7 @@ def test_the_whole_daemon_in_process_runs_like_the_offline_loop(tmp_path: Path) 
     plant.start()
     log_path = tmp_path / "run.mcap"
     try:
-        end_reason = run_daemon(config, log_path, None, secret)
+        end_reason = run_daemon(config, log_path, None, secret=secret)
     finally:
         stop_plant.set()
         plant.join(timeout=10)

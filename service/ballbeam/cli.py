@@ -159,7 +159,7 @@ def command_daemon(args: argparse.Namespace) -> int:
     log_path = Path(args.log) if args.log else new_log_path(config.run.log_dir, config.plan.kind)
     secret = secret_from_arguments(args)
     try:
-        end_reason = run_daemon(config, log_path, args.config, live_port, secret)
+        end_reason = run_daemon(config, log_path, args.config, live_port=live_port, secret=secret)
     except PlantLostError as error:
         print(f"ballbeam: error: {error}", file=sys.stderr)
         return EXIT_PLANT_LOST

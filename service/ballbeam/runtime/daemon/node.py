@@ -80,6 +80,7 @@ def run_daemon(
     config: Config,
     log_path: Path,
     config_path: str | None,
+    *,
     live_port: int | None = None,
     secret: bytes | None = None,
 ) -> str:
