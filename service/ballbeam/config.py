@@ -557,28 +557,35 @@ def _deep_merge(base: dict[str, Any], override: Mapping[str, Any]) -> dict[str, 
 MAX_CONFIG_BYTES = 1 << 20  # far above any real config (the paper's is 4 KiB)
 
 
-def _read_toml(path: Path, depth: int = 0) -> dict[str, Any]:
-    if depth > MAX_EXTENDS_DEPTH:
-        raise ConfigError(f"{path}: 'extends' chain is deeper than {MAX_EXTENDS_DEPTH} files")
+def read_toml_file(path: Path, kind: str = "config") -> dict[str, Any]:
+    """One TOML file of ours (a config, a sweep or tuning spec), read with the checks every
+    such file gets: a regular file (not /dev/zero or a FIFO), at most 1 MiB, UTF-8, valid
+    TOML; else one ConfigError that names ``kind`` and the path."""
     problem = not_a_regular_file(path)
     if problem is not None:
-        raise ConfigError(f"cannot read config {path}: {problem}")
+        raise ConfigError(f"cannot read {kind} {path}: {problem}")
     try:
         with path.open("rb") as stream:
             text = stream.read(MAX_CONFIG_BYTES + 1)
         if len(text) > MAX_CONFIG_BYTES:
             raise ConfigError(
-                f"{path}: larger than {MAX_CONFIG_BYTES // 1024} KiB; not a config file"
+                f"{path}: larger than {MAX_CONFIG_BYTES // 1024} KiB; not a {kind} file"
             )
-        data = tomllib.loads(text.decode("utf-8"))
+        return tomllib.loads(text.decode("utf-8"))
     except FileNotFoundError as error:
-        raise ConfigError(f"config file not found: {path}") from error
+        raise ConfigError(f"{kind} file not found: {path}") from error
     except IsADirectoryError as error:
-        raise ConfigError(f"config path is a directory, not a file: {path}") from error
+        raise ConfigError(f"{kind} path is a directory, not a file: {path}") from error
     except (OSError, UnicodeDecodeError) as error:
-        raise ConfigError(f"cannot read config file {path}: {error}") from error
+        raise ConfigError(f"cannot read {kind} file {path}: {error}") from error
     except tomllib.TOMLDecodeError as error:
         raise ConfigError(f"{path}: not valid TOML: {error}") from error
+
+
+def _read_toml(path: Path, depth: int = 0) -> dict[str, Any]:
+    if depth > MAX_EXTENDS_DEPTH:
+        raise ConfigError(f"{path}: 'extends' chain is deeper than {MAX_EXTENDS_DEPTH} files")
+    data = read_toml_file(path)
     parent = data.pop("extends", None)
     if parent is None:
         return data

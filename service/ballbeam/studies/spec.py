@@ -28,7 +28,6 @@ from __future__ import annotations
 import itertools
 import json
 import math
-import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,9 +36,8 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel
 
-from ballbeam.config import Config, resolve_config_path
+from ballbeam.config import Config, read_toml_file, resolve_config_path
 from ballbeam.errors import ConfigError
-from ballbeam.files import not_a_regular_file
 
 Runner = Literal["offline", "lockstep", "realtime"]
 RUNNERS: tuple[Runner, ...] = ("offline", "lockstep", "realtime")
@@ -301,13 +299,5 @@ def spec_from_mapping(data: Mapping[str, Any], path: Path) -> SweepSpec:
 def load_spec(name: str | Path) -> SweepSpec:
     """A spec file, or a shipped one (``sweeps/mismatch_monte_carlo``)."""
     path = resolve_config_path(name)
-    problem = not_a_regular_file(path)
-    if problem is not None:
-        raise ConfigError(f"cannot read sweep spec {path}: {problem}")
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError) as error:
-        raise ConfigError(f"cannot read sweep spec {path}: {error}") from error
-    except tomllib.TOMLDecodeError as error:
-        raise ConfigError(f"{path}: not valid TOML: {error}") from error
+    data = read_toml_file(path, "sweep spec")
     return spec_from_mapping(data, path.resolve())

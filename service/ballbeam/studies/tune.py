@@ -39,7 +39,6 @@ import math
 import os
 import re
 import sys
-import tomllib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,9 +46,8 @@ from typing import Any
 
 import numpy as np
 
-from ballbeam.config import load_config, read_config_data, resolve_config_path
+from ballbeam.config import load_config, read_config_data, read_toml_file, resolve_config_path
 from ballbeam.errors import BallbeamError, ConfigError
-from ballbeam.files import not_a_regular_file
 from ballbeam.studies.points import PointOutcome, PointTask, evaluate_batch, warm_up
 from ballbeam.studies.spec import SweepSpec, check_config_key, spec_from_mapping, toml_value
 from ballbeam.studies.store import point_id
@@ -213,15 +211,7 @@ def tune_spec_from_mapping(data: Mapping[str, Any], path: Path) -> TuneSpec:
 
 def load_tune_spec(name: str | Path) -> TuneSpec:
     path = resolve_config_path(name)
-    problem = not_a_regular_file(path)
-    if problem is not None:
-        raise ConfigError(f"cannot read tuning spec {path}: {problem}")
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError) as error:
-        raise ConfigError(f"cannot read tuning spec {path}: {error}") from error
-    except tomllib.TOMLDecodeError as error:
-        raise ConfigError(f"{path}: not valid TOML: {error}") from error
+    data = read_toml_file(path, "tuning spec")
     spec = tune_spec_from_mapping(data, path.resolve())
     defaults(spec)  # every key and index exists in the base
     return spec
