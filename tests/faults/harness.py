@@ -379,6 +379,19 @@ class Outcome:
     daemon_stderr: str
 
 
+def finish_flood(flood: subprocess.Popen[str]) -> tuple[str, str]:
+    """A flood process's stdout and stderr once it has stopped by itself (it is bounded in
+    count and time); one that does not is killed and fails the test."""
+    try:
+        return flood.communicate(timeout=START_TIMEOUT_S + 10)
+    except subprocess.TimeoutExpired:
+        raise AssertionError("the flood did not stop by itself") from None
+    finally:
+        if flood.poll() is None:
+            flood.kill()
+            flood.communicate()
+
+
 def run_to_end(bench: Bench, extra_budget_s: float = 0.0) -> Outcome:
     """Let a bench run its course, stop the emulator, read the log."""
     budget_s = START_TIMEOUT_S + bench.config.run.duration_s * 3 + extra_budget_s

@@ -34,6 +34,7 @@ from .harness import (
     assert_settles_like,
     faults,
     figure,
+    finish_flood,
     run_to_end,
     summary_meta,
 )
@@ -96,14 +97,7 @@ def run_with_flood(
             text=True,
             cwd=REPO,
         )
-        try:
-            flood_out, flood_err = flood.communicate(timeout=START_TIMEOUT_S + 10)
-        except subprocess.TimeoutExpired:
-            raise AssertionError("the flood did not stop by itself") from None
-        finally:
-            if flood.poll() is None:
-                flood.kill()
-                flood.communicate()
+        flood_out, flood_err = finish_flood(flood)
         outcome = run_to_end(bench)
     # The flood stopped by itself (exit 0: it was not killed above), bounded in count by its
     # own limit. How long it took depends on the machine's load, which is not what this test

@@ -41,6 +41,7 @@ from .harness import (
     events,
     faults,
     figure,
+    finish_flood,
     one_error_line,
     run_to_end,
     set_args,
@@ -72,14 +73,7 @@ def run_attacked(tmp: Path, mode: str, seed: int) -> tuple[Outcome, dict[str, An
             ],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
         )
-        try:
-            flood_out, flood_err = flood.communicate(timeout=START_TIMEOUT_S + 10)
-        except subprocess.TimeoutExpired:
-            raise AssertionError("the flood did not stop by itself") from None
-        finally:
-            if flood.poll() is None:
-                flood.kill()
-                flood.communicate()
+        flood_out, flood_err = finish_flood(flood)
         outcome = run_to_end(bench)
     assert flood.returncode == 0, flood_err
     sent: dict[str, Any] = json.loads(flood_out)
