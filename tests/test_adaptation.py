@@ -190,7 +190,9 @@ def resync_law(rate_per_s: float = 20.0) -> BallGainAdaptation:
 
 
 ARC_THETA_RAD = 0.9  # θ_d held on a limit arc
-ARC_ACCELERATION = -DESIGN_GAMMA * -ARC_THETA_RAD  # ẍ_d on that arc (here negative)
+# The paper model's ball on that arc: ẍ_d = γ·θ_d < 0 (γ < 0), so a ball moving toward −x
+# speeds up there, and on the arc at −θ_d it slows down.
+ARC_ACCELERATION = DESIGN_GAMMA * ARC_THETA_RAD
 
 
 @pytest.mark.parametrize("lag_s", [0.025, -0.01])
@@ -204,10 +206,8 @@ def test_the_clock_takes_up_a_measured_lag_on_an_accelerating_arc(lag_s: float) 
     position_d = 0.1
     # Where the reference (played at the pace) was δ ago; δ small, so to first order.
     position = position_d - velocity * lag_s
-    reference = (-ARC_THETA_RAD, 0.0, velocity_d, position_d)
-    next_velocity = velocity_d + ARC_ACCELERATION * PERIOD_S
-    shift = law.clock_shift_cycles((-ARC_THETA_RAD, 0.0, velocity, position), reference,
-                                   next_velocity, pace)
+    reference = (ARC_THETA_RAD, 0.0, velocity_d, position_d)
+    shift = law.clock_shift_cycles((ARC_THETA_RAD, 0.0, velocity, position), reference, pace)
     assert acceleration * velocity > 0
     assert shift == pytest.approx(-0.005 * lag_s * pace / PERIOD_S, rel=1e-9)
 
@@ -216,21 +216,20 @@ def test_the_clock_stays_off_arcs_and_on_decelerating_ones() -> None:
     law = resync_law()
     behind = (0.0, 0.0, -0.1, 0.102)
     # Decelerating arc: θ_d of the other sign, so ẍ_d opposes the velocity.
-    decelerating = (ARC_THETA_RAD, 0.0, -0.1, 0.1)
-    assert law.clock_shift_cycles(behind, decelerating, -0.1 - ARC_ACCELERATION * PERIOD_S,
-                                  1.0) == 0.0
+    decelerating = (-ARC_THETA_RAD, 0.0, -0.1, 0.1)
+    assert law.clock_shift_cycles(behind, decelerating, 1.0) == 0.0
     swinging = (0.5, 3.0, -0.1, 0.1)  # θ_d moving: not an arc
-    assert law.clock_shift_cycles(behind, swinging, -0.1, 1.0) == 0.0
+    assert law.clock_shift_cycles(behind, swinging, 1.0) == 0.0
     assert resync_law(0.0).clock_shift_cycles(
-        behind, (-ARC_THETA_RAD, 0.0, -0.1, 0.1), -0.1 + ARC_ACCELERATION * PERIOD_S, 1.0
+        behind, (ARC_THETA_RAD, 0.0, -0.1, 0.1), 1.0
     ) == 0.0
 
 
 def test_the_clock_shift_is_bounded() -> None:
     law = resync_law(1000.0)
     far_behind = (0.0, 0.0, -0.1, 0.2)
-    reference = (-ARC_THETA_RAD, 0.0, -0.1, 0.1)
-    shift = law.clock_shift_cycles(far_behind, reference, -0.1 + ARC_ACCELERATION * PERIOD_S, 1.0)
+    reference = (ARC_THETA_RAD, 0.0, -0.1, 0.1)
+    shift = law.clock_shift_cycles(far_behind, reference, 1.0)
     assert shift == pytest.approx(-0.2)
 
 

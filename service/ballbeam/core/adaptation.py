@@ -51,9 +51,7 @@ class BallGainAdaptation:
     resync_max_per_cycle: float = 0.0  # largest shift of the clock in one cycle [path cycles]
     arc_theta_rad: float = 0.0  # |θ_d| beyond this, with θ̇_d still, is a limit arc
 
-    def clock_shift_cycles(
-        self, estimate: Row4, reference: Row4, next_velocity_m_s: float, pace: float
-    ) -> float:
+    def clock_shift_cycles(self, estimate: Row4, reference: Row4, pace: float) -> float:
         """How far to move the path's clock this cycle, besides the pace [path cycles].
 
         Until the estimate is confident the path runs at the model's pace, and a slower ball
@@ -62,8 +60,9 @@ class BallGainAdaptation:
         tracker cannot win the time back, but the clock can: θ_d is constant there, so moving
         τ moves only the ball's reference, not the servo's. A ball behind by δ seconds sits
         where the reference was δ ago, x̂ ≈ X − V·δ (X, V the reference played at the pace),
-        so δ = −(x̂ − X)/V. Only on accelerating arcs (V·A > 0): on a decelerating one an error
-        is mostly surplus speed, not a delay, and moving the clock would hide it.
+        so δ = −(x̂ − X)/V. Only on accelerating arcs, where the arc's acceleration γ·θ_d has
+        the sign of V: on a decelerating one an error is mostly surplus speed, not a delay, and
+        moving the clock would hide it.
         """
         if self.resync_rate_per_cycle == 0.0:
             return 0.0
@@ -71,8 +70,7 @@ class BallGainAdaptation:
         if abs(theta_rate_d) > 1e-3 or abs(theta_d) < self.arc_theta_rad:
             return 0.0
         velocity = pace * velocity_d
-        acceleration = pace * pace * (next_velocity_m_s - velocity_d) / self.period_s
-        if velocity * acceleration <= 0.0 or abs(velocity) < MIN_RESYNC_SPEED_M_S:
+        if velocity * (self.design_gamma * theta_d) <= 0.0 or abs(velocity) < MIN_RESYNC_SPEED_M_S:
             return 0.0
         lag_s = -(estimate[3] - position_d) / velocity
         shift = self.resync_rate_per_cycle * lag_s * pace / self.period_s

@@ -379,10 +379,7 @@ def control_cycle(
             fit = adaptation.advance(fit, theta_measured_rad)
         pace = adaptation.pace(ratio, state.pace)
         if ratio != 1.0 and position < adaptation.until_cycle:
-            next_velocity = design.reference(position + 1.0)[0][2]
-            resync = adaptation.clock_shift_cycles(
-                estimate, reference, next_velocity, pace
-            )
+            resync = adaptation.clock_shift_cycles(estimate, reference, pace)
     requested_v = design.tracker_input(
         position, estimate, pace, (reference, reference_input_v)
     )
