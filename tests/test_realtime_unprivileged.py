@@ -9,7 +9,6 @@ capabilities (CAP_SYS_NICE among them) and an rtprio limit of 0 (``setpriv``, ut
 from __future__ import annotations
 
 import json
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -17,9 +16,8 @@ from pathlib import Path
 import pytest
 
 from ballbeam.logs.reader import read_log
-from ballbeam.runtime.process import realtime_permitted
 
-from .conftest import REPO
+from .conftest import REPO, import_bench
 
 REFUSED = "real-time scheduling refused"
 THETA_LIMIT_DEG = 52.0
@@ -27,17 +25,13 @@ TRUTH_RESOLUTION_DEG = 1e-3  # the truth frame's 1e-5 rad, with room to spare
 
 
 def unprivileged_prefix() -> list[str]:
-    if not realtime_permitted(45):
-        return []  # already a user without real-time scheduling
-    setpriv = shutil.which("setpriv")
-    prlimit = shutil.which("prlimit")
-    if setpriv is None or prlimit is None:
+    """The command prefix that drops the privilege (bench/realtime_load.py's, which measures the
+    same runs under load)."""
+    prefix = import_bench("realtime_load").unprivileged_prefix()
+    if prefix is None:
         pytest.skip("needs setpriv and prlimit (Debian: apt-get install util-linux) to drop "
                     "the real-time privilege")
-    return [
-        setpriv, "--bounding-set=-all", "--inh-caps=-all", "--ambient-caps=-all",
-        "--no-new-privs", "--", prlimit, "--rtprio=0:0",
-    ]
+    return list(prefix)
 
 
 @pytest.mark.bus
