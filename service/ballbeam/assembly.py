@@ -245,6 +245,11 @@ def _rest_gains(config: Config, model: LinearModel, from_cycle: int) -> RestGain
         far_gain = as_row4(stationary_gain(
             model, np.diag(tracker_cfg.far_q), np.array([[tracker_cfg.far_r]]), period_s
         )[0][0])
+    firm_gain = None
+    if tracker_cfg.rest_firm_s > 0:
+        firm_gain = as_row4(stationary_gain(
+            model, np.diag(tracker_cfg.rest_q), np.array([[tracker_cfg.rest_firm_r]]), period_s
+        )[0][0])
     return RestGains(
         gain=as_row4(rest_gain[0]),
         far_gain=far_gain,
@@ -254,6 +259,8 @@ def _rest_gains(config: Config, model: LinearModel, from_cycle: int) -> RestGain
         theta_far_rad=math.radians(tracker_cfg.rest_theta_far_deg),
         position_near_m=tracker_cfg.rest_position_near_m,
         position_far_m=tracker_cfg.rest_position_far_m,
+        firm_gain=firm_gain,
+        firm_cycles=max(round(tracker_cfg.rest_firm_s / period_s), 1),
     )
 
 

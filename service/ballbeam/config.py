@@ -96,7 +96,7 @@ class PlanSection(_Section):
         9.325, gt=0, le=100, description="rate_limited: bound on |θ̇| (paper: 9.325 or 8)"
     )
     voltage_margin_v: float = Field(
-        0.25, ge=0, description="time_optimal: voltage kept back for the tracker's corrections"
+        0.45, ge=0, description="time_optimal: voltage kept back for the tracker's corrections"
     )
     theta_margin_deg: float = Field(
         0.5, ge=0, le=20, description="time_optimal: the path stays this far inside ±θ limit"
@@ -127,6 +127,14 @@ class TrackerSection(_Section):
     rest_r: float = Field(1.0, gt=0, description="R of the regulator that holds rest")
     rest_blend_s: float = Field(
         0.05, ge=0, le=10, description="after the plan: gains blend to the rest regulator's"
+    )
+    rest_firm_r: float = Field(
+        0.5, gt=0, description="right after the plan, R of firmer rest gains (rest_q) that "
+        "fade into rest_r's over rest_firm_s"
+    )
+    rest_firm_s: float = Field(
+        1.5, ge=0, le=60, description="how long the firmer rest gains take to fade [s] "
+        "(0: rest_r's from the plan's end)"
     )
     far_q: tuple[float, ...] | None = Field(
         (10.0, 0.0, 0.0, 50000.0),

@@ -65,6 +65,10 @@ class RestGains:
     after ``from_cycle`` and the state's distance from rest, (|θ| − near)/(far − near) and
     (|x| − near)/(far − near): K = K_rest + w (K_stiff − K_rest), continuous in the state.
     ``far_gain``: the stiff gains after the plan (None: the tracking schedule's own).
+    ``firm_gain``: rest gains firmer than ``gain``, used at ``from_cycle`` and fading linearly
+    into it over ``firm_cycles``: a ball that arrives drifting ~1 mm/s is caught (the gentle
+    gains' demand for it stays inside the command band, and it rolls out of the rest band);
+    once it has settled the gentle gains hold it without dither.
     """
 
     gain: Row4
@@ -75,6 +79,19 @@ class RestGains:
     theta_far_rad: float
     position_near_m: float
     position_far_m: float
+    firm_gain: Row4 | None = None  # the rest gains right after the plan (None: ``gain`` alone)
+    firm_cycles: int = 1  # ... fading into ``gain`` over this many cycles
+
+    def rest_row(self, cycle: int) -> Row4:
+        """The rest gains at ``cycle``: firm right after the plan, fading into the gentle ones."""
+        firm = self.firm_gain
+        h = 1.0 - (cycle - self.from_cycle) / self.firm_cycles
+        if firm is None or h <= 0.0:
+            return self.gain
+        h = min(h, 1.0)
+        g0, g1, g2, g3 = self.gain
+        f0, f1, f2, f3 = firm
+        return (g0 + h * (f0 - g0), g1 + h * (f1 - g1), g2 + h * (f2 - g2), g3 + h * (f3 - g3))
 
     def stiff_weight(self, cycle: int, estimate: Row4) -> float:
         ramp = 1.0 - (cycle - self.from_cycle) / self.blend_cycles
@@ -221,7 +238,7 @@ class ControllerDesign:
             if rest.far_gain is not None:
                 k0, k1, k2, k3 = rest.far_gain
             w = rest.stiff_weight(cycle, estimate)
-            r0, r1, r2, r3 = rest.gain
+            r0, r1, r2, r3 = rest.rest_row(cycle)
             k0, k1, k2, k3 = r0 + w * (k0 - r0), r1 + w * (k1 - r1), r2 + w * (k2 - r2), (
                 r3 + w * (k3 - r3)
             )

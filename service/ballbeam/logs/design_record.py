@@ -28,6 +28,7 @@ deadband_v, deadzone_v     ()        command band sent as 0 V; modelled dead zon
 rest_from_cycle            ()        the plan's end (cycle): rest observer and gains
 rest_observer_L            (4, 2)    present with a rest filter: its Kalman gain
 rest_*                               present with rest gains: gain (4,), far_gain (4,)
+                                     (optional), firm_gain (4,) and firm_cycles ()
                                      (optional), from_cycle, blend_cycles,
                                      theta_near_rad, theta_far_rad, position_near_m,
                                      position_far_m (scalars)
@@ -115,6 +116,9 @@ def encode_design(design: ControllerDesign) -> bytes:
         arrays["rest_blend_cycles"] = _f8(rest.blend_cycles)
         if rest.far_gain is not None:
             arrays["rest_far_gain"] = _f8(rest.far_gain)
+        if rest.firm_gain is not None:
+            arrays["rest_firm_gain"] = _f8(rest.firm_gain)
+            arrays["rest_firm_cycles"] = _f8(rest.firm_cycles)
     adaptation = design.adaptation
     if adaptation is not None:
         arrays.update({
@@ -191,6 +195,14 @@ def decode_design(data: bytes, where: str) -> ControllerDesign:
                 far_gain=_four(arrays["rest_far_gain"]) if "rest_far_gain" in arrays else None,
                 from_cycle=_count(arrays["rest_from_cycle_gains"]),
                 blend_cycles=max(_count(arrays["rest_blend_cycles"]), 1),
+                # Logs from before the firm rest gains have neither array.
+                firm_gain=(
+                    _four(arrays["rest_firm_gain"]) if "rest_firm_gain" in arrays else None
+                ),
+                firm_cycles=(
+                    max(_count(arrays["rest_firm_cycles"]), 1)
+                    if "rest_firm_cycles" in arrays else 1
+                ),
             )
         adaptation = None
         if "adapt_design_gamma" in arrays:
