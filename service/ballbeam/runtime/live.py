@@ -150,13 +150,18 @@ class LiveView:
         check_port_free(port)
         self.port = port
         self.url = live_url(port)
-        self._process = subprocess.Popen(
-            [sys.executable, "-m", "ballbeam.runtime.live_server", "--port", str(port),
-             "--name", name, "--backlog", str(BACKLOG_MESSAGES)],
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            close_fds=True,
-        )
+        try:
+            self._process = subprocess.Popen(
+                [sys.executable, "-m", "ballbeam.runtime.live_server", "--port", str(port),
+                 "--name", name, "--backlog", str(BACKLOG_MESSAGES)],
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                close_fds=True,
+            )
+        except OSError as exc:
+            raise LiveViewError(
+                f"cannot start the live view's server process: {exc.strerror or exc}"
+            ) from exc
         assert self._process.stdin is not None and self._process.stdout is not None
         self._frames_fd = self._process.stdin.fileno()
         self._replies_fd = self._process.stdout.fileno()
