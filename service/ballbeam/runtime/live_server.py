@@ -44,6 +44,7 @@ from ballbeam.runtime.live import (
 POLL_S = 0.005  # how often an idle server looks for the daemon's next frame
 READ_BYTES = 1 << 20  # the pipe's size: one read takes whatever is there
 LINGER_S = 0.1  # after the last chunk: the server's queues drain before it stops
+NICE = 10  # the server process yields the CPU to the run's processes at normal priority
 
 
 class _Subscriptions(ServerListener):
@@ -198,11 +199,15 @@ def _answer(replies: IO[str], answer: dict[str, Any]) -> None:
 
 
 def _leave_real_time() -> None:
-    """Normal scheduling, whatever the parent had: this process must never take the CPU from
-    the control loop (the daemon starts it before it takes SCHED_FIFO; this makes sure)."""
+    """Normal scheduling, whatever the parent had, and below the run's processes: this process
+    must never take the CPU from the control loop (the daemon starts it before it takes
+    SCHED_FIFO; this makes sure), nor, without SCHED_FIFO, delay the daemon's and the plant's
+    wake-ups (lock-step's ping-pong over the bus)."""
     with contextlib.suppress(OSError, AttributeError):
         if os.sched_getscheduler(0) != os.SCHED_OTHER:
             os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    with contextlib.suppress(OSError):
+        os.nice(NICE)
 
 
 def serve_frames(server: LiveServer, frames: PolledFrames, replies: IO[str]) -> None:
