@@ -6,11 +6,22 @@
 
 Side by side in one invocation, the paper's run over the bus: without ``--live``; with it and
 no client; with a client subscribed to the shipped Foxglove layout's topics (what the app with
-that layout asks for); with a client subscribed to every topic. Per run: the live path's cost
-per control cycle (the recorder's writer thread forwarding written chunks to the server, its
-CPU time as the daemon itself counts it in the log's "live" record; the loop thread does no
-work for it), messages forwarded and received, and the loop's overruns and lateness. The
-client is a separate process (``websockets``, needs the test extras), as the Foxglove app is.
+that layout asks for); with a client subscribed to every topic. Per run, from the log the daemon
+wrote:
+
+- the live path's cost to the daemon per control cycle: the CPU time its recorder's writer
+  thread spends handing written chunks to the live server process (the log's "live" record;
+  the loop thread does no work for it);
+- the recorder's writer thread's whole CPU time per cycle (the log's "recorder" record), to
+  compare with the run without ``--live``: what the view adds to that thread, however it adds
+  it;
+- the live server process's CPU time per cycle once serving (user + system, every thread, as
+  the kernel counted it when the process ended, less what it had spent when it began serving:
+  interpreter, SDK and server start-up, reported apart): the work moved out of the daemon;
+- messages forwarded and received, chunks the view dropped, and the loop's overruns and
+  lateness.
+
+The client is a separate process (``websockets``, needs the test extras), as the Foxglove app is.
 """
 
 from __future__ import annotations
@@ -126,17 +137,39 @@ def one_run(
     summary = summarise(run_log)
     cycles = int(summary["cycles"])
     live_record = run_log.metadata.get("live", {})
-    forward_ns = int(live_record.get("forward_ns", 0))
+    writer_cpu_ns = run_log.metadata.get("recorder", {}).get("writer_cpu_ns")
     start_ns = run_log.topics["/timing"].values["start_ns"]
     # The loop's own pace: in lock-step, how fast the run goes (a slower loop shows here).
     cycle_us = float(start_ns[-1] - start_ns[0]) / (len(start_ns) - 1) / 1e3
+
+    def per_cycle_us(key: str) -> float | None:
+        value = live_record.get(key)
+        return int(value) / cycles / 1e3 if live and value is not None else None
+
     return {
         "variant": variant,
         "cycles": cycles,
         "cycle_us": cycle_us,
-        "live_us_per_cycle": forward_ns / cycles / 1e3 if live else None,
-        "forwarded": int(live_record.get("messages_forwarded", 0)) if live else None,
+        "live_us_per_cycle": per_cycle_us("daemon_cpu_ns"),
+        "writer_thread_us_per_cycle": (
+            int(writer_cpu_ns) / cycles / 1e3 if writer_cpu_ns is not None else None
+        ),
+        "server_process_us_per_cycle": (
+            (int(live_record["server_cpu_ns"]) - int(live_record["server_startup_cpu_ns"]))
+            / cycles / 1e3
+            if live and "server_cpu_ns" in live_record and "server_startup_cpu_ns" in live_record
+            else None
+        ),
+        "server_startup_cpu_ms": (
+            int(live_record["server_startup_cpu_ns"]) / 1e6
+            if "server_startup_cpu_ns" in live_record else None
+        ),
+        "forwarded": (
+            int(live_record.get("server_messages_forwarded", 0)) if live else None
+        ),
         "received": received,
+        "chunks_dropped": int(live_record.get("chunks_dropped", 0)) if live else None,
+        "live_failed": live_record.get("failed"),
         "overruns": summary["overruns"],
         "lateness_p99_us": summary["lateness_p99_us"],
         "lateness_max_us": summary["lateness_max_us"],
@@ -164,14 +197,22 @@ def table(
         + "".join(f", --set {override}" for override in overrides)
         + " "
         f"(target <= {TARGET_US_PER_CYCLE:g} us a cycle, no extra overruns)",
-        "| variant | live path us/cycle | forwarded | received | loop us/cycle | overruns "
-        "| lateness p99 / max [us] | recorder dropped |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| variant | live path (daemon) us/cycle | writer thread us/cycle "
+        "| live server process us/cycle (start-up ms) | forwarded | received | view dropped chunks "
+        "| loop us/cycle | overruns | lateness p99 / max [us] | recorder dropped |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for row in rows:
+        dropped = _cell(row["chunks_dropped"])
+        if row["live_failed"]:
+            dropped += f" (view failed: {row['live_failed']})"
         lines.append(
-            f"| {row['variant']} | {_cell(row['live_us_per_cycle'])} | {_cell(row['forwarded'])} "
-            f"| {_cell(row['received'])} | {_cell(row['cycle_us'], 1)} | {_cell(row['overruns'])} "
+            f"| {row['variant']} | {_cell(row['live_us_per_cycle'])} "
+            f"| {_cell(row['writer_thread_us_per_cycle'])} "
+            f"| {_cell(row['server_process_us_per_cycle'], 1)} "
+            f"({_cell(row['server_startup_cpu_ms'], 0)}) "
+            f"| {_cell(row['forwarded'])} | {_cell(row['received'])} | {dropped} "
+            f"| {_cell(row['cycle_us'], 1)} | {_cell(row['overruns'])} "
             f"| {_cell(row['lateness_p99_us'], 1)} / {_cell(row['lateness_max_us'], 0)} "
             f"| {_cell(row['recorder_dropped'])} |"
         )
@@ -203,7 +244,8 @@ def main(argv: list[str] | None = None) -> int:
                     args.overrides,
                 )
                 rows.append(row)
-                print(f"  {variant}: {_cell(row['live_us_per_cycle'])} us/cycle, "
+                print(f"  {variant}: {_cell(row['live_us_per_cycle'])} us/cycle in the "
+                      f"daemon, {_cell(row['server_process_us_per_cycle'])} in the server, "
                       f"{row['overruns']} overruns", file=sys.stderr, flush=True)
     print(table(rows, args.mode, args.duration, args.overrides))
     if args.json:

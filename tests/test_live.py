@@ -11,9 +11,13 @@ from __future__ import annotations
 import asyncio
 import io
 import json
+import os
+import signal
 import socket
 import struct
 import subprocess
+import sys
+import textwrap
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,9 +26,10 @@ from typing import Any
 import pytest
 from mcap.reader import make_reader
 
-from ballbeam.logs.mcap_file import OpenChunk
+from ballbeam.logs.mcap_file import McapFile, OpenChunk, records_messages
 from ballbeam.logs.recorder import Recorder
 from ballbeam.logs.schema import StructSchema
+from ballbeam.runtime.live import LiveView
 
 from .conftest import PAPER, REPO, ballbeam, ballbeam_argv
 
@@ -245,3 +250,119 @@ def test_a_failing_tap_never_stops_the_recording() -> None:
     assert sum(1 for _ in reader.iter_messages()) == 2_000
     live = {record.name: record.metadata for record in reader.iter_metadata()}["live"]
     assert live["failed"] == "RuntimeError: viewer gone"
+
+
+def test_a_chunks_records_read_back_as_the_messages_put_in() -> None:
+    mcap = McapFile(io.BytesIO(), profile="test", library="test")
+    schema_id = mcap.add_schema("s", "ros2msg", b"float64 value")
+    first = mcap.add_channel("/a", "cdr", schema_id)
+    second = mcap.add_channel("/b", "cdr", schema_id)
+    sent = [(first if index % 3 else second, 1_000 + index, bytes([index]) * index)
+            for index in range(50)]
+    for channel_id, log_time_ns, payload in sent:
+        mcap.add_message(channel_id, log_time_ns, payload)
+    chunk = mcap.take_chunk()
+    assert chunk is not None
+    assert list(records_messages(bytes(chunk.records))) == sent
+
+
+def _recorded_run(live: LiveView, messages: int, during: Any = None) -> dict[str, str]:
+    """Record ``messages`` values through a recorder tapped by ``live`` (``during(index)`` on
+    each); every one must be in the file, whatever the view did. The log's "live" record."""
+    schema = StructSchema("test/Value", (("value", "float64"),))
+    buffer = io.BytesIO()
+    with Recorder(buffer, tap=live, flush_interval_s=0.002) as recorder:
+        handle = recorder.add_struct_channel("/value", schema)
+        live.start()
+        for index in range(messages):
+            recorder.record(handle, 1_000 + index, (float(index),))
+            if during is not None:
+                during(index)
+    live.stop()
+    reader = make_reader(io.BytesIO(buffer.getvalue()))
+    assert sum(1 for _ in reader.iter_messages()) == messages
+    return {record.name: record.metadata for record in reader.iter_metadata()}["live"]
+
+
+def _ended(pid: int, within_s: float) -> bool:
+    """Whether process ``pid`` is gone (or a zombie nobody reaps) within ``within_s``."""
+    deadline = time.monotonic() + within_s
+    while time.monotonic() < deadline:
+        try:
+            with open(f"/proc/{pid}/stat", encoding="ascii") as stat:
+                if stat.read().rsplit(")", 1)[1].split()[0] == "Z":
+                    return True
+        except FileNotFoundError:
+            return True
+        time.sleep(0.02)
+    return False
+
+
+def test_the_view_reports_both_processes() -> None:
+    live = LiveView(free_port())
+    record = _recorded_run(live, 2_000, lambda index: time.sleep(0.01) if index == 1_000 else None)
+    assert int(record["chunks"]) >= 1 and record["chunks_dropped"] == "0"
+    assert int(record["server_chunks"]) == int(record["chunks"])  # every handed chunk read
+    assert record["server_messages_forwarded"] == "0"  # no client: nothing to forward
+    assert int(record["server_cpu_ns"]) >= int(record["server_startup_cpu_ns"]) > 0
+    assert int(record["daemon_cpu_ns"]) > 0
+    assert _ended(live.server_pid, 1.0)
+
+
+def test_a_dead_live_server_is_dropped_and_the_recording_goes_on() -> None:
+    live = LiveView(free_port())
+
+    def kill_server(index: int) -> None:
+        if index == 500:
+            os.kill(live.server_pid, signal.SIGKILL)
+        if index % 100 == 0:
+            time.sleep(0.005)  # let the writer take chunks after the kill
+
+    record = _recorded_run(live, 2_000, kill_server)
+    assert record["failed"].startswith("LiveViewError: the live view's server process is gone")
+
+
+def test_a_stalled_live_server_never_holds_up_the_recording() -> None:
+    """A server that reads nothing (stopped): chunks the pipe cannot take leave the view, the
+    recording takes them all. Resumed before the end, it ends as usual."""
+    live = LiveView(free_port())
+    schema = StructSchema("test/Blob", (("blob", "uint8[4096]"),))
+    payload = (bytes(4096),)
+    buffer = io.BytesIO()
+    messages = 1_500  # ~6 MiB: several times the pipe's 1 MiB
+    with Recorder(buffer, tap=live, flush_interval_s=0.002) as recorder:
+        handle = recorder.add_struct_channel("/blob", schema)
+        live.start()
+        os.kill(live.server_pid, signal.SIGSTOP)
+        try:
+            for index in range(messages):
+                recorder.record(handle, 1_000 + index, payload)
+                if index % 50 == 0:
+                    time.sleep(0.004)
+        finally:
+            os.kill(live.server_pid, signal.SIGCONT)
+    live.stop()
+    assert recorder.dropped == 0
+    reader = make_reader(io.BytesIO(buffer.getvalue()))
+    assert sum(1 for _ in reader.iter_messages()) == messages
+    record = {r.name: r.metadata for r in reader.iter_metadata()}["live"]
+    assert int(record["chunks_dropped"]) > 0
+    assert "failed" not in record
+
+
+def test_the_live_server_ends_with_its_daemon() -> None:
+    """However the daemon's process ends (here SIGKILL: no clean-up at all), its server ends."""
+    script = textwrap.dedent(f"""
+        import os, signal, sys
+        from ballbeam.runtime.live import LiveView
+        live = LiveView({free_port()})
+        live.add_channel(1, "/value", "cdr", "test/Value", "ros2msg", b"float64 value")
+        live.start()
+        print(live.server_pid, flush=True)
+        os.kill(os.getpid(), signal.SIGKILL)
+    """)
+    daemon = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=120, check=False
+    )
+    assert daemon.returncode == -signal.SIGKILL, daemon.stderr
+    assert _ended(int(daemon.stdout.strip()), 10.0)

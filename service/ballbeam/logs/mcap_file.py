@@ -89,26 +89,22 @@ class OpenChunk:
     messages: int = 0
 
 
-def chunk_messages(
-    chunk: OpenChunk, channel_id: int, records: bytes | None = None
-) -> Iterator[tuple[int, bytes]]:
-    """The (log time, payload) of each message of one channel in a taken chunk, in order.
+def records_messages(records: bytes) -> Iterator[tuple[int, int, bytes]]:
+    """The (channel id, log time, payload) of each message in a chunk's records, in order.
 
-    For a reader of the chunk before it is written (the live view): it walks the channel's
-    index entries instead of every record of the chunk. ``records`` is ``bytes(chunk.records)``
-    when the caller reads several channels of one chunk (one copy instead of one a channel),
-    so that each payload is one slice."""
-    pairs = chunk.index.get(channel_id)
-    if pairs is None:
-        return
-    if records is None:
-        records = bytes(chunk.records)
-    record_length = _RECORD_LENGTH.unpack_from
+    ``records`` is an uncompressed chunk's content as :meth:`McapFile.write_chunk` compresses
+    it (:attr:`OpenChunk.records`): the live view's server process reads the chunks the
+    daemon hands it with this. Records other than messages are skipped."""
+    unpack_head = _MESSAGE_HEAD.unpack_from
     head = _MESSAGE_HEAD.size
-    # A record's length field counts the bytes after it: the payload ends at offset + 9 + it.
-    for log_time_ns, offset in zip(pairs[0::2], pairs[1::2], strict=True):
-        end = offset + 9 + record_length(records, offset + 1)[0]
-        yield log_time_ns, records[offset + head : end]
+    offset, size = 0, len(records)
+    while offset < size:
+        opcode, length, channel_id, _, log_time_ns, _ = unpack_head(records, offset)
+        # A record's length field counts the bytes after it (opcode: 1, length: 8).
+        end = offset + 9 + length
+        if opcode == Opcode.MESSAGE:
+            yield channel_id, log_time_ns, records[offset + head : end]
+        offset = end
 
 
 class McapFile:

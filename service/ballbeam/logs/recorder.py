@@ -66,8 +66,8 @@ class ChunkTap(Protocol):
 
     ``add_channel`` is called once per channel, as it is registered (any thread that
     registers); ``take`` with each chunk once it is written (the writer thread: it must not
-    block, and may read the chunk with :func:`~ballbeam.logs.mcap_file.chunk_messages` until it
-    returns); ``stats`` at close, for the "live" metadata record.
+    block, and may read the chunk until it returns; its ``records`` are never changed after);
+    ``stats`` at close, for the "live" metadata record.
     """
 
     def add_channel(
@@ -224,6 +224,7 @@ class Recorder:
         self._closed = False
         self._error: BaseException | None = None
         self._written = 0
+        self._writer_cpu_ns: int | None = None
         self._rejected = 0
         self._first_rejection: str | None = None
         self._schema_ids: dict[tuple[str, str, bytes], int] = {}
@@ -361,6 +362,9 @@ class Recorder:
                 with self._stream_lock:
                     self._stream.flush()  # hand the chunk to the OS: a killed run keeps it
                 if stopping:
+                    # Its whole CPU time (compression, writes, the live view's hand-over):
+                    # what recording costs besides the loop's own encoding.
+                    self._writer_cpu_ns = time.thread_time_ns()
                     return
                 self._wake.wait(max(0.0, next_flush_s - time.monotonic()))
                 self._wake.clear()
@@ -433,6 +437,8 @@ class Recorder:
                     }
                     if self._first_rejection is not None:
                         counts["first_rejection"] = self._first_rejection
+                    if self._writer_cpu_ns is not None:
+                        counts["writer_cpu_ns"] = str(self._writer_cpu_ns)
                     self._file.add_metadata("recorder", counts)
                     if self._tap is not None or self._tap_error is not None:
                         live: dict[str, str] = {}
