@@ -20,6 +20,9 @@ from hypothesis import strategies as st
 import ballbeam.protocol
 from ballbeam.errors import BallbeamError, FrameError
 from ballbeam.protocol.frames import (
+    PLANT_STATUS_FIELDS,
+    PLANT_STATUS_ID,
+    PLANT_STATUS_VALUE_MAX,
     SENSOR_ID,
     TRUTH_ANGLE_ID,
     TRUTH_BALL_ID,
@@ -29,6 +32,7 @@ from ballbeam.protocol.frames import (
     Frame,
     FrameContract,
     FrameRejectedError,
+    PlantStatusFrame,
     SensorFrame,
     TruthAngle,
     TruthBall,
@@ -38,7 +42,7 @@ from ballbeam.protocol.frames import (
 )
 
 DBC_PATH = Path(ballbeam.protocol.__file__).parent / "ballbeam.dbc"
-IDS = (VOLTAGE_COMMAND_ID, SENSOR_ID, TRUTH_ANGLE_ID, TRUTH_BALL_ID)
+IDS = (VOLTAGE_COMMAND_ID, SENSOR_ID, TRUTH_ANGLE_ID, TRUTH_BALL_ID, PLANT_STATUS_ID)
 
 # Factors and raw limits as the contract states them (symmetric ranges for the scaled signals).
 VOLT_LSB = 1e-3
@@ -230,6 +234,26 @@ def test_matches_cantools_bytes_and_values(
     assert frame.voltage_v == decoded["Voltage"]
 
 
+@given(counters, st.integers(0, len(PLANT_STATUS_FIELDS) - 1), st.booleans(),
+       st.integers(0, PLANT_STATUS_VALUE_MAX))
+def test_plant_status_matches_cantools_bytes_and_round_trips(
+    contract: FrameContract, counter: int, field: int, final: bool, value: int
+) -> None:
+    message = contract.database.get_message_by_frame_id(PLANT_STATUS_ID)
+    signals = {"CRC": 0, "Counter": counter, "Field": field, "Final": int(final), "Value": value}
+    reference = cantools_protect(message.encode(signals), PLANT_STATUS_ID)
+    data = contract.encode_plant_status(counter, field, final, value)
+    assert data == reference
+    assert contract.decode(PLANT_STATUS_ID, data) == PlantStatusFrame(counter, field, final, value)
+
+
+def test_the_dbc_names_the_plant_status_fields_as_the_code_does(contract: FrameContract) -> None:
+    """The Field signal's value table is the contract for tools that read the DBC alone."""
+    field = contract.database.get_message_by_frame_id(PLANT_STATUS_ID).get_signal_by_name("Field")
+    assert dict(field.choices) == dict(enumerate(PLANT_STATUS_FIELDS))
+    assert (field.minimum, field.maximum) == (0, len(PLANT_STATUS_FIELDS) - 1)
+
+
 # --- encoding refuses what it cannot represent ----------------------------------------------
 
 
@@ -250,6 +274,9 @@ def test_matches_cantools_bytes_and_values(
         (0x102, (0, 0.0, -float("inf"))),
         (0x103, (0, 0.6, 0.0)),
         (0x103, (0, 0.0, float("nan"))),
+        (0x104, (0, 13, False, 0)),  # no 14th counter
+        (0x104, (0, 0, False, PLANT_STATUS_VALUE_MAX + 1)),  # the sender saturates
+        (0x104, (0, 0, False, -1)),
     ],
 )
 def test_encode_refuses_out_of_range(
@@ -260,6 +287,7 @@ def test_encode_refuses_out_of_range(
         0x101: contract.encode_sensor,
         0x102: contract.encode_truth_angle,
         0x103: contract.encode_truth_ball,
+        0x104: contract.encode_plant_status,
     }[frame_id]
     with pytest.raises(FrameRejectedError) as info:
         encoder(*args)  # type: ignore[operator]
@@ -304,7 +332,7 @@ def test_decode_accepts_bytearray_and_reports_reasons(contract: FrameContract) -
     data = contract.encode_sensor(1, 2, 3, 1)
     assert contract.decode(0x101, bytearray(data)) == SensorFrame(1, 2, 3, 1)
     for frame_id, payload, reason in [
-        (0x104, data, "unknown_id"),
+        (0x105, data, "unknown_id"),
         (0x101, data[:7], "length"),
         (0x101, data[:1] + bytes([data[1] ^ 0x80]) + data[2:], "crc"),
     ]:

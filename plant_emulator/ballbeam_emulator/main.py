@@ -9,6 +9,8 @@ import logging
 import sys
 from collections.abc import Sequence
 
+import can
+
 from ballbeam.config import Config
 from ballbeam.errors import BallbeamError, BusError
 from ballbeam.protocol.frames import FrameContract
@@ -57,7 +59,12 @@ def run_emulator(config: Config, secret: bytes | None = None) -> None:
             emulator.run_realtime(stop)
     finally:
         emulator.stop()
-        bus.shutdown()
+        try:
+            emulator.send_final_status()  # the counters reported below, into the run's log
+        except can.CanError as error:
+            log.warning("the final status frames could not be sent: %s", error)
+        finally:
+            bus.shutdown()
         log.info("emulator stopped: %s", emulator.counters)
 
 

@@ -9,13 +9,19 @@ Either way a watchdog zeroes the voltage when valid commands stop.
 With an authenticator (``bus.authenticate``) every frame sent is a SecOC-style CAN FD frame
 and only commands with a right MAC and a fresh freshness value are obeyed (protocol/secoc.py);
 the freshness, not the 8-bit counter, then orders the commands (across daemon restarts too).
+
+Its own counters go to the run's log as PlantStatus frames: a snapshot every 100 ms of plant
+time, one frame per sample sent (never a burst), and a final one as it stops. Under
+``ballbeam run`` it stops when the daemon says the run is over (runtime/peer_link.py), while the
+daemon still listens, so the log's final snapshot is what the emulator reports on exit.
 """
 
 from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from collections import deque
+from dataclasses import astuple, dataclass
 
 import can
 import numpy as np
@@ -25,6 +31,8 @@ from ballbeam.config import Config
 from ballbeam.core.plant import PlantPhysics, initial_noise, next_noise, read_sensors
 from ballbeam.errors import FrameError
 from ballbeam.protocol.frames import (
+    PLANT_STATUS_ID,
+    PLANT_STATUS_VALUE_MAX,
     SENSOR_ID,
     STATUS_HELD,
     STATUS_WATCHDOG,
@@ -44,9 +52,15 @@ from ballbeam.runtime.ticker import Ticker
 
 log = logging.getLogger("ballbeam.emulator")
 
+STATUS_PERIOD_S = 0.1  # plant time between two snapshots of the counters
+FINAL_STATUS_GAP_S = 100e-6  # between the final snapshot's frames: udp_multicast drops bursts
+
 
 @dataclass
 class EmulatorCounters:
+    """The emulator's own counts; the fields, in order, are PLANT_STATUS_FIELDS (the frames'
+    Field index)."""
+
     samples_sent: int = 0
     resends: int = 0
     commands_applied: int = 0
@@ -96,6 +110,11 @@ class PlantEmulator:
         self.watchdog_ns = int(config.plant.watchdog_ms * 1e6)
         self.last_command_ns: int | None = None
         self.watchdog_zeroed = False
+        # Status snapshots: frames waiting to go, one per sample sent; the first at the start.
+        self.status_period_samples = max(1, round(STATUS_PERIOD_S * config.plant.sensor_rate_hz))
+        self._periods_to_status = 0
+        self._status_pending: deque[bytes] = deque()
+        self.status_counter = 0
 
     # -- frames -------------------------------------------------------------------------------
     def _send(self, arbitration_id: int, data: bytes) -> None:
@@ -133,6 +152,33 @@ class PlantEmulator:
             TRUTH_ANGLE_ID, self.contract.encode_truth_angle(self.counter, theta, theta_rate)
         )
         self._send(TRUTH_BALL_ID, self.contract.encode_truth_ball(self.counter, position, velocity))
+        if self._status_pending:
+            self._send(PLANT_STATUS_ID, self._status_pending.popleft())
+
+    def _count_periods(self, periods: int) -> None:
+        """``periods`` sample periods of plant time passed: a snapshot when one is due."""
+        self._periods_to_status -= periods
+        if self._periods_to_status <= 0:
+            self._periods_to_status = self.status_period_samples
+            self._queue_status(final=False)
+
+    def _queue_status(self, final: bool) -> None:
+        """A snapshot of the counters now, as PlantStatus payloads (an unsent older one is
+        dropped: the receiver keeps whole snapshots only)."""
+        self._status_pending.clear()
+        for field_index, value in enumerate(astuple(self.counters)):
+            self._status_pending.append(self.contract.encode_plant_status(
+                self.status_counter, field_index, final, min(value, PLANT_STATUS_VALUE_MAX)
+            ))
+            self.status_counter = next_counter(self.status_counter)
+
+    def send_final_status(self) -> None:
+        """The counters as they stand, marked final, all at once (the loop is over)."""
+        self._queue_status(final=True)
+        while self._status_pending:
+            self._send(PLANT_STATUS_ID, self._status_pending.popleft())
+            if self._status_pending:
+                time.sleep(FINAL_STATUS_GAP_S)
 
     def _recv(self, timeout_s: float, poll_s: float = 0.0) -> can.Message | None:
         """The next message within ``timeout_s``; datagrams that are no frame are counted."""
@@ -198,11 +244,20 @@ class PlantEmulator:
             log.warning("watchdog: no valid command for %.1f ms, voltage zeroed",
                         (now_ns - self.last_command_ns) / 1e6)
 
-    def _check_peer(self) -> None:
-        """The launcher's link says the daemon died: no drive from this moment on (the
-        sample's status shows it, as after a watchdog trip)."""
+    def _check_peer(self, stop: StopFlag) -> None:
+        """The launcher's link says the daemon's run is over: stop (0 V; the final counters
+        go out while the daemon listens). It says the daemon died: no drive from this moment
+        on (the sample's status shows it, as after a watchdog trip)."""
+        if self.peer_link is None:
+            return
+        state = self.peer_link.state()
+        if state == "run_over" and not stop.is_set():
+            self.voltage_v = 0.0
+            stop.set("run_over")
+            log.info("the daemon's run is over: stopping")
+            return
         # Once: a command heard since (a restarted daemon, by hand) is obeyed as usual.
-        if self.peer_link is None or self.counters.peer_lost or not self.peer_link.peer_gone():
+        if state != "gone" or self.counters.peer_lost:
             return
         self.voltage_v = 0.0
         self.watchdog_zeroed = True
@@ -210,6 +265,19 @@ class PlantEmulator:
         self.command_check.reset()
         log.warning("peer link closed: the daemon is gone; voltage zeroed at monotonic %d ns",
                     time.monotonic_ns())
+
+    def _take_last_commands(self, message: can.Message | None, lockstep: bool) -> None:
+        """The daemon's last frames, already on the bus when it said the run is over (its last
+        command, its stop commands): judged and counted as usual; nothing advances any more."""
+        while message is not None:
+            command = self._accept_command(message)
+            if command is not None:
+                if lockstep and command.enable and command.sensor_counter != self.counter:
+                    self.counters.rejected += 1  # answers an older sample: stale
+                else:
+                    self._apply(command, time.monotonic_ns())
+            message = self._recv(0.0)
+        self.voltage_v = 0.0
 
     def _advance(self, substeps: int) -> None:
         if self.started and substeps > 0:
@@ -219,12 +287,16 @@ class PlantEmulator:
     def run_lockstep(self, stop: StopFlag) -> None:
         resend_s = self.config.plant.lockstep_resend_ms * 1e-3
         poll_s = self.config.run.lockstep_poll_us * 1e-6
+        self._count_periods(0)
         self._send_sample()
         last_sent = time.monotonic()
         while not stop.is_set():
             message = self._recv(resend_s, poll_s)
             now_ns = time.monotonic_ns()
-            self._check_peer()
+            self._check_peer(stop)
+            if stop.is_set():
+                self._take_last_commands(message, lockstep=True)
+                break
             self._check_watchdog(now_ns)
             if message is None or (command := self._accept_command(message)) is None:
                 if time.monotonic() - last_sent >= resend_s:
@@ -244,6 +316,7 @@ class PlantEmulator:
                 self._advance(self.substeps)
                 self.noise_m = next_noise(self.physics.params, self.noise_m, self.rng)
             self.counter = next_counter(self.counter)
+            self._count_periods(self.sensor_periods_per_command)
             self._send_sample()
             last_sent = time.monotonic()
 
@@ -257,7 +330,10 @@ class PlantEmulator:
         physics_ns = ticker.origin_ns
         tick = ticker.wait()
         while not stop.is_set():
-            self._check_peer()
+            self._check_peer(stop)
+            if stop.is_set():
+                self._take_last_commands(None, lockstep=False)
+                break
             # Advance to the deadline, then sample: the sensor reads the state at t_k.
             due = (tick.deadline_ns - physics_ns) // self.substep_ns
             self._advance(due)
@@ -268,6 +344,7 @@ class PlantEmulator:
                 self.noise_m = next_noise(self.physics.params, self.noise_m, self.rng)
                 self.counter = next_counter(self.counter)
             self.counters.missed_periods += tick.skipped
+            self._count_periods(1 + tick.skipped)
             self.noise_m = next_noise(self.physics.params, self.noise_m, self.rng)
             self._send_sample()
             self.counter = next_counter(self.counter)

@@ -25,7 +25,7 @@ import pytest
 
 from ballbeam.config import DEFAULT_BUS_GROUP, BusSection, load_config
 from ballbeam.logs.reader import read_log
-from ballbeam.protocol.frames import VOLTAGE_COMMAND_ID, VoltageCommand
+from ballbeam.protocol.frames import PLANT_STATUS_FIELDS, VOLTAGE_COMMAND_ID, VoltageCommand
 from ballbeam.runtime.bus import isolated_group, open_bus
 from ballbeam.runtime.exit_codes import EXIT_PLANT_LOST, EXIT_SECOND_WRITER
 
@@ -113,6 +113,13 @@ def run_attacked(tmp: Path, mode: str, seed: int) -> tuple[Outcome, dict[str, An
     truth = outcome.log.topics["/truth"].values
     assert np.abs(truth["theta_rad"]).max() <= math.radians(DEFAULTS.plant.hard_stop_deg)
     assert (np.diff(truth["sample_index"]) >= 0).all()  # a lock-step resend repeats one
+    # None recorded as the plant's counters: forged status frames carry counters at their
+    # ceiling; the plant's only grow, and never past what it reported on exit.
+    status = outcome.log.topics["/plant_status"].values
+    assert len(status) >= 10  # every 100 ms of a 4 s run, lost frames aside
+    for name in PLANT_STATUS_FIELDS:
+        assert (np.diff(status[name]) >= 0).all(), name
+        assert status[name].max() <= emulator[name], (name, emulator)
     return outcome, sent
 
 

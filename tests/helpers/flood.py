@@ -11,11 +11,11 @@ bursts (never faster than ``--rate-hz``), and prints one JSON object: what it se
 
 What it sends (seeded):
 
-- ``foreign_id``: standard ids outside 0x100-0x103, any length 0-8, random bytes;
-- ``bad_crc``: our four ids, 8 random bytes whose E2E CRC is made wrong on purpose (a random
+- ``foreign_id``: standard ids outside 0x100-0x104, any length 0-8, random bytes;
+- ``bad_crc``: our five ids, 8 random bytes whose E2E CRC is made wrong on purpose (a random
   payload would pass the CRC-16 once in 65,536 frames: that is spoofing, not noise);
-- ``wrong_length``: our four ids with 0-7 bytes;
-- ``extended_id``: our four numeric ids as *extended* (29-bit) ids, carrying payloads whose CRC is
+- ``wrong_length``: our five ids with 0-7 bytes;
+- ``extended_id``: our five numeric ids as *extended* (29-bit) ids, carrying payloads whose CRC is
   right for the standard frame of that number (a real bus keeps the two id spaces apart; so must
   the receivers), with wild values (full-scale counts, ±5 V enabled commands);
 - ``remote_frame`` and ``error_frame``: our ids with those flags set;
@@ -25,8 +25,9 @@ What it sends (seeded):
 ``--attack`` sends what an authenticated bus (protocol/secoc.py) must refuse instead, from a
 process that does not hold the run's secret:
 
-- ``forged_mac``: 24-byte CAN FD frames on our four ids with valid classic payloads (right CRC,
-  wild values: ±5 V enabled commands, full-scale counts, truth at ±5 rad), a fresh freshness
+- ``forged_mac``: 24-byte CAN FD frames on our five ids with valid classic payloads (right CRC,
+  wild values: ±5 V enabled commands, full-scale counts, truth at ±5 rad, plant counters at
+  their ceiling), a fresh freshness
   value and a MAC under a key of its own;
 - ``replayed``: authenticated frames of the run heard on the bus, sent again (old ones and the
   very latest, i.e. replayed and reordered), unchanged;
@@ -53,6 +54,9 @@ import msgpack
 
 from ballbeam.config import BusSection
 from ballbeam.protocol.frames import (
+    PLANT_STATUS_FIELDS,
+    PLANT_STATUS_ID,
+    PLANT_STATUS_VALUE_MAX,
     SENSOR_ID,
     TRUTH_ANGLE_ID,
     TRUTH_BALL_ID,
@@ -63,7 +67,7 @@ from ballbeam.protocol.frames import (
 from ballbeam.protocol.secoc import AUTHENTICATED_LENGTH, FrameAuthenticator
 from ballbeam.runtime.bus import open_bus
 
-OUR_IDS = (VOLTAGE_COMMAND_ID, SENSOR_ID, TRUTH_ANGLE_ID, TRUTH_BALL_ID)
+OUR_IDS = (VOLTAGE_COMMAND_ID, SENSOR_ID, TRUTH_ANGLE_ID, TRUTH_BALL_ID, PLANT_STATUS_ID)
 BURST_PERIOD_NS = 1_000_000
 KINDS = (
     ("foreign_id", 30),
@@ -153,6 +157,11 @@ def _valid_payload(rng: random.Random, contract: FrameContract, arbitration_id: 
         )
     if arbitration_id == TRUTH_ANGLE_ID:
         return contract.encode_truth_angle(counter, rng.uniform(-5, 5), rng.uniform(-50, 50))
+    if arbitration_id == PLANT_STATUS_ID:  # a counter at its ceiling, final or not
+        return contract.encode_plant_status(
+            counter, rng.randrange(len(PLANT_STATUS_FIELDS)), rng.random() < 0.5,
+            PLANT_STATUS_VALUE_MAX,
+        )
     return contract.encode_truth_ball(counter, rng.uniform(-0.5, 0.5), rng.uniform(-5, 5))
 
 

@@ -16,7 +16,12 @@ from ballbeam.core.metrics import compute_metrics
 from ballbeam.errors import LogFormatError
 from ballbeam.logs.reader import RunLog
 from ballbeam.logs.topics import LEGACY_STRUCT_TOPICS, STRUCT_TOPICS
-from ballbeam.protocol.frames import SENSOR_ID, VOLTAGE_COMMAND_ID, FrameContract
+from ballbeam.protocol.frames import (
+    PLANT_STATUS_FIELDS,
+    SENSOR_ID,
+    VOLTAGE_COMMAND_ID,
+    FrameContract,
+)
 
 REQUIRED_TOPICS = ("/command", "/reference", "/truth", "/timing")
 SATURATION_TOLERANCE_V = 1e-6
@@ -121,6 +126,23 @@ def plant_missed_periods(run_log: RunLog) -> int | None:
     return int(np.sum(np.maximum(steps - 1, 0)))
 
 
+def plant_counters(run_log: RunLog) -> tuple[str, dict[str, int] | None]:
+    """The emulator's own counters as the log recorded them (``/plant_status``): the last
+    snapshot, and what it is: ``"final"`` (sent as the emulator stopped), ``"periodic ..."``
+    (no final one reached the log) or ``"absent ..."`` (a log recorded before the topic, or a
+    plant that sends none: a real rig)."""
+    status = run_log.topics.get("/plant_status")
+    if status is None or not len(status):
+        return "absent (the log has no /plant_status snapshot)", None
+    check_layouts(run_log, ("/plant_status",))
+    values = status.values
+    counters = {name: int(values[name][-1]) for name in PLANT_STATUS_FIELDS}
+    if values["final"][-1]:
+        return "final", counters
+    at_s = (int(status.log_time_ns[-1]) - int(run_log.topics["/command"].log_time_ns[0])) * 1e-9
+    return f"periodic, at {at_s:.3f} s (no final snapshot reached the log)", counters
+
+
 def summarise(run_log: RunLog, theta_limit_rad: float | None = None) -> dict[str, Any]:
     """One flat dict: the core metrics plus timing, frames, faults and truncation."""
     series = run_series(run_log)
@@ -156,6 +178,8 @@ def summarise(run_log: RunLog, theta_limit_rad: float | None = None) -> dict[str
     for message in faults.messages if faults is not None else ():
         fault_kinds[str(message.get("kind"))] = fault_kinds.get(str(message.get("kind")), 0) + 1
 
+    plant_status, plant_counts = plant_counters(run_log)
+
     def counter(name: str) -> int | None:
         value = summary_meta.get(name)
         return int(value) if value is not None and value.lstrip("-").isdigit() else None
@@ -175,6 +199,10 @@ def summarise(run_log: RunLog, theta_limit_rad: float | None = None) -> dict[str
         "coasted_cycles": counter("coasted_cycles"),
         "recorder_dropped": counter("recorder_dropped"),
         "plant_missed_periods": plant_missed_periods(run_log),
+        # The emulator's own counts (its missed_periods among them: truth gaps above are those
+        # plus truth frames lost on the bus).
+        "plant_status": plant_status,
+        "plant_counters": plant_counts,
         "faults": fault_kinds,
         "end_reason": summary_meta.get("end_reason", "unknown (no summary: run cut short)"),
         "truncated": run_log.truncated,

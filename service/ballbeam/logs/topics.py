@@ -85,6 +85,26 @@ class TruthRecordV1(NamedTuple):
     ball_position_m: Float64
 
 
+class PlantStatusRecord(NamedTuple):
+    """The emulator's own counters, one whole snapshot of its PlantStatus frames (fields after
+    ``final`` are PLANT_STATUS_FIELDS, in order)."""
+
+    final: UInt8  # 1: the snapshot the emulator sent as it stopped
+    samples_sent: Int64
+    resends: Int64
+    commands_applied: Int64
+    rejected: Int64
+    own_or_foreign: Int64
+    dropped_by_injection: Int64
+    watchdog_trips: Int64
+    missed_periods: Int64
+    peer_lost: Int64
+    unauthenticated: Int64
+    bad_mac: Int64
+    replayed: Int64
+    out_of_window: Int64
+
+
 class TimingRecord(NamedTuple):
     cycle: Int64
     deadline_ns: Int64
@@ -125,6 +145,7 @@ ESTIMATE = _topic("/estimate", "ballbeam/Estimate", EstimateRecord)
 REFERENCE = _topic("/reference", "ballbeam/Reference", ReferenceRecord)
 TRUTH = _topic("/truth", "ballbeam/PlantTruth", TruthRecord)
 TIMING = _topic("/timing", "ballbeam/CycleTiming", TimingRecord)
+PLANT_STATUS = _topic("/plant_status", "ballbeam/PlantStatus", PlantStatusRecord)
 
 EVENT_SCHEMA = {
     "type": "object",
@@ -140,7 +161,9 @@ EVENTS = "/events"
 
 STRUCT_TOPICS: dict[str, StructSchema] = {
     topic.name: topic.schema
-    for topic in (CAN_RX, CAN_TX, SENSOR, COMMAND, ESTIMATE, REFERENCE, TRUTH, TIMING)
+    for topic in (
+        CAN_RX, CAN_TX, SENSOR, COMMAND, ESTIMATE, REFERENCE, TRUTH, TIMING, PLANT_STATUS
+    )
 }
 JSON_TOPICS = (FAULTS, EVENTS)
 # Earlier layouts a reader still accepts, per topic.

@@ -1,4 +1,4 @@
-"""The CAN frame contract: encode and decode the four ballbeam frames, check their counters.
+"""The CAN frame contract: encode and decode the five ballbeam frames, check their counters.
 
 The contract is defined once, in ``ballbeam.dbc`` beside this module (package data), and
 loaded with cantools by both processes. :meth:`FrameContract.load` reads each signal's
@@ -32,6 +32,7 @@ VOLTAGE_COMMAND_ID: Final = 0x100
 SENSOR_ID: Final = 0x101
 TRUTH_ANGLE_ID: Final = 0x102
 TRUTH_BALL_ID: Final = 0x103
+PLANT_STATUS_ID: Final = 0x104
 FRAME_LENGTH: Final = 8
 COUNTER_MODULUS: Final = 256
 
@@ -43,6 +44,25 @@ CounterVerdict: TypeAlias = Literal["ok", "repeated", "stale"]
 # Status bits of SensorFrame.status.
 STATUS_WATCHDOG: Final = 0x01  # the watchdog has zeroed the voltage
 STATUS_HELD: Final = 0x02  # plant held at its initial state, not started yet
+
+# The emulator's counters a PlantStatus snapshot carries, by PlantStatusFrame.field (the DBC's
+# VAL_ table for the Field signal names them in this order).
+PLANT_STATUS_FIELDS: Final = (
+    "samples_sent",
+    "resends",
+    "commands_applied",
+    "rejected",
+    "own_or_foreign",
+    "dropped_by_injection",
+    "watchdog_trips",
+    "missed_periods",
+    "peer_lost",
+    "unauthenticated",
+    "bad_mac",
+    "replayed",
+    "out_of_window",
+)
+PLANT_STATUS_VALUE_MAX: Final = 0xFFFF_FFFF  # a 32-bit Value: senders saturate
 
 
 class FrameRejectedError(FrameError):
@@ -96,7 +116,21 @@ class TruthBall:
     velocity_m_s: float
 
 
-Frame: TypeAlias = VoltageCommand | SensorFrame | TruthAngle | TruthBall
+@dataclass(frozen=True, slots=True)
+class PlantStatusFrame:
+    """0x104, emulator → recorder: one counter of a snapshot of the emulator's counters.
+
+    ``field`` indexes PLANT_STATUS_FIELDS; a snapshot is the frames with field 0..12 in order
+    and consecutive ``counter`` values; ``final`` marks the snapshot sent as the emulator
+    stops."""
+
+    counter: int
+    field: int
+    final: bool
+    value: int
+
+
+Frame: TypeAlias = VoltageCommand | SensorFrame | TruthAngle | TruthBall | PlantStatusFrame
 
 
 def next_counter(counter: int) -> int:
@@ -185,6 +219,11 @@ _CONTRACT: Final[dict[str, tuple[int, type[Frame], tuple[tuple[str, _FieldKind],
         TRUTH_BALL_ID,
         TruthBall,
         (("BallPosition", "float"), ("BallVelocity", "float")),
+    ),
+    "PlantStatus": (
+        PLANT_STATUS_ID,
+        PlantStatusFrame,
+        (("Field", "int"), ("Final", "bool"), ("Value", "int")),
     ),
 }
 _HEADER: Final = (("CRC", 0, 16), ("Counter", 16, 8))  # (name, start bit, length): E2E P5
@@ -283,7 +322,7 @@ def _layout_from_message(
 
 
 class FrameContract:
-    """The loaded frame contract: encode and decode the four frames.
+    """The loaded frame contract: encode and decode the five frames.
 
     Encoders take physical values, round to the signal's resolution and refuse (with
     :class:`FrameRejectedError`, reason ``"range"``) a value outside the signal's DBC
@@ -370,6 +409,11 @@ class FrameContract:
     def encode_truth_ball(self, counter: int, position_m: float, velocity_m_s: float) -> bytes:
         """0x103 payload. Resolution 1e-6 m, 1e-5 m/s (ranges ±0.524 m, ±5.24 m/s)."""
         return self._encode(self._by_id[TRUTH_BALL_ID], (counter, position_m, velocity_m_s))
+
+    def encode_plant_status(self, counter: int, field: int, final: bool, value: int) -> bytes:
+        """0x104 payload: counter ``field`` (an index of PLANT_STATUS_FIELDS) is ``value``
+        (0..PLANT_STATUS_VALUE_MAX; the sender saturates)."""
+        return self._encode(self._by_id[PLANT_STATUS_ID], (counter, field, final, value))
 
     def encode(self, frame: Frame) -> tuple[int, bytes]:
         """Any decoded frame back to ``(arbitration_id, payload)``, e.g. to replay a log."""

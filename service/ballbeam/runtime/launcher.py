@@ -30,7 +30,7 @@ from ballbeam.runtime.exit_codes import (
     EXIT_PLANT_LOST,
     EXIT_SECOND_WRITER,
 )
-from ballbeam.runtime.peer_link import PEER_LINK_ENV, peer_link_pipe
+from ballbeam.runtime.peer_link import PEER_LINK_ENV, PEER_LINK_WRITE_ENV, peer_link_pipe
 from ballbeam.runtime.process import new_log_path, realtime_permitted, realtime_refused_message
 
 STOP_GRACE_S = 5.0
@@ -50,6 +50,7 @@ class LaunchResult:
     daemon_exit: int
     emulator_exit: int
     wall_time_s: float
+    emulator_stderr: str = ""  # its own report: the counters it ends with, for a cross-check
 
 
 def _tail(text: str, lines: int = 8) -> str:
@@ -142,7 +143,7 @@ def launch_run(
     ]
     started = time.monotonic()
     # The dead-man link (runtime/peer_link.py): the emulator zeroes the drive within a sensor
-    # period of the daemon's death, whatever kills it.
+    # period of the daemon's death, whatever kills it, and stops when the daemon's run is over.
     link_read, link_write = peer_link_pipe()
     # The run's frame-authentication key (protocol/secoc.py): to each child through a pipe of
     # its own, never on a command line, in the environment or in the log.
@@ -170,6 +171,9 @@ def launch_run(
             stderr=subprocess.PIPE,
             text=True,
             pass_fds=tuple(fd for fd in (link_write, daemon_secret) if fd is not None),
+            # Its end of the link also says when the run is over (the emulator then sends its
+            # final counters, and the daemon records them).
+            env={**os.environ, PEER_LINK_WRITE_ENV: str(link_write)},
         )
     finally:
         for fd in (link_read, link_write, emulator_secret, daemon_secret):
@@ -214,4 +218,5 @@ def launch_run(
         daemon_exit=daemon.returncode,
         emulator_exit=emulator_exit,
         wall_time_s=time.monotonic() - started,
+        emulator_stderr=emulator_errors,
     )

@@ -1,24 +1,49 @@
 """A dead-man link between the two processes of a run: a pipe whose only write end the daemon
 holds, and whose read end the emulator polls.
 
-Nothing is ever written. When the daemon dies, however it dies (SIGKILL included), the kernel
-closes its end at once and the emulator's next poll reads end-of-file: it zeroes the drive
-within one sensor period instead of waiting out its watchdog, which must be long enough for
-real time's worst hiccups (20 ms). A real rig gets the same from a hardware enable line; a
-daemon run by hand has no link and relies on the watchdog.
+When the daemon dies, however it dies (SIGKILL included), the kernel closes its end at once
+and the emulator's next poll reads end-of-file: it zeroes the drive within one sensor period
+instead of waiting out its watchdog, which must be long enough for real time's worst hiccups
+(20 ms). A real rig gets the same from a hardware enable line; a daemon run by hand has no link
+and relies on the watchdog.
+
+One byte is ever written: the daemon's "run over" (:func:`signal_run_over`) after its last
+command, so that the emulator stops there, sends its final counters (the PlantStatus frames)
+while the daemon still listens and records them, and reports on exit exactly what the log got.
 
 The launcher (``ballbeam run``) makes the pipe and hands each end to one process by inheriting
-it (``pass_fds``); the emulator learns its end's number from ``BALLBEAM_PEER_LINK_FD``.
+it (``pass_fds``); the emulator learns its end's number from ``BALLBEAM_PEER_LINK_FD``, the
+daemon its own from ``BALLBEAM_PEER_LINK_WRITE_FD``.
 """
 
 from __future__ import annotations
 
 import os
 from collections.abc import Mapping
+from typing import Literal, TypeAlias
 
 from ballbeam.errors import ConfigError
 
 PEER_LINK_ENV = "BALLBEAM_PEER_LINK_FD"
+PEER_LINK_WRITE_ENV = "BALLBEAM_PEER_LINK_WRITE_FD"
+RUN_OVER = b"E"
+
+PeerState: TypeAlias = Literal["running", "run_over", "gone"]
+
+
+def _inherited_fd(name: str, environ: Mapping[str, str]) -> int | None:
+    value = environ.get(name)
+    if value is None:
+        return None
+    try:
+        fd = int(value)
+        os.fstat(fd)
+    except (ValueError, OSError):
+        raise ConfigError(
+            f"{name}={value!r} is not an open file descriptor (it is set by `ballbeam run`; "
+            "unset it to run the process by hand)"
+        ) from None
+    return fd
 
 
 class PeerLink:
@@ -28,33 +53,48 @@ class PeerLink:
         os.set_blocking(read_fd, False)
         self.read_fd = read_fd
         self.gone = False
+        self.run_over = False
 
     @classmethod
     def from_environment(cls, environ: Mapping[str, str] = os.environ) -> PeerLink | None:
-        value = environ.get(PEER_LINK_ENV)
-        if value is None:
-            return None
-        try:
-            fd = int(value)
-            os.fstat(fd)
-        except (ValueError, OSError):
-            raise ConfigError(
-                f"{PEER_LINK_ENV}={value!r} is not an open file descriptor (it is set by "
-                "`ballbeam run`; unset it to run the emulator by hand)"
-            ) from None
-        return cls(fd)
+        fd = _inherited_fd(PEER_LINK_ENV, environ)
+        return None if fd is None else cls(fd)
+
+    def state(self) -> PeerState:
+        """``"gone"`` once the daemon's end has closed, else ``"run_over"`` once the daemon
+        said its run is over, else ``"running"`` (each state is kept once reached)."""
+        if not self.gone:
+            try:
+                byte = os.read(self.read_fd, 1)
+            except BlockingIOError:
+                byte = None
+            if byte == b"":
+                self.gone = True
+            elif byte is not None:
+                self.run_over = True  # any byte: only the daemon holds the write end
+        return "gone" if self.gone else "run_over" if self.run_over else "running"
 
     def peer_gone(self) -> bool:
         """True once the daemon's end has closed (and from then on)."""
-        if not self.gone:
-            try:
-                self.gone = os.read(self.read_fd, 1) == b""
-            except BlockingIOError:
-                return False
-        return self.gone
+        return self.state() == "gone"
 
     def close(self) -> None:
         os.close(self.read_fd)
+
+
+def run_over_fd(environ: Mapping[str, str] = os.environ) -> int | None:
+    """The daemon's end of the link, if ``ballbeam run`` handed it one."""
+    return _inherited_fd(PEER_LINK_WRITE_ENV, environ)
+
+
+def signal_run_over(write_fd: int) -> bool:
+    """Tell the emulator the run is over (the daemon has sent its last command); False if it
+    is gone already."""
+    try:
+        os.write(write_fd, RUN_OVER)
+    except OSError:  # EPIPE: the emulator is gone (Python ignores SIGPIPE)
+        return False
+    return True
 
 
 def peer_link_pipe() -> tuple[int, int]:

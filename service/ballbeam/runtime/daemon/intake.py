@@ -2,6 +2,7 @@
 
 Sensor frames must pass the contract and their counter check to become the latest sample;
 truth frames are paired (angle + ball, same counter) and recorded at their sample's time; the
+emulator's status frames are gathered into whole snapshots of its counters (``/plant_status``); the
 daemon's own commands looped back by the bus (the bytes it sent) are counted and dropped; a
 command frame it did not send is someone else's: recorded and counted as rejected
 (``rejected_foreign_command``); anything else is recorded as received and counted as rejected
@@ -24,17 +25,27 @@ from collections import Counter, deque
 import can
 
 from ballbeam.logs.recording import RunRecording
-from ballbeam.logs.topics import CAN_RX, TRUTH, CanFrameRecord, TruthRecord
+from ballbeam.logs.topics import (
+    CAN_RX,
+    PLANT_STATUS,
+    TRUTH,
+    CanFrameRecord,
+    PlantStatusRecord,
+    TruthRecord,
+)
 from ballbeam.protocol.frames import (
+    PLANT_STATUS_FIELDS,
     VOLTAGE_COMMAND_ID,
     CounterCheck,
     CounterUnwrap,
     CounterVerdict,
     FrameContract,
     FrameRejectedError,
+    PlantStatusFrame,
     SensorFrame,
     TruthAngle,
     TruthBall,
+    next_counter,
 )
 from ballbeam.protocol.secoc import (
     AUTHENTICATED_LENGTH,
@@ -80,6 +91,44 @@ class SentCommands:
         return True
 
 
+class PlantStatusAssembler:
+    """Whole snapshots from the emulator's PlantStatus frames: field 0 opens one; each next
+    field must follow with the next counter and the same ``final``; the last field closes it.
+    A lost or out-of-order frame discards the snapshot (the next comes 100 ms later)."""
+
+    def __init__(self) -> None:
+        self._values: list[int] = []
+        self._final = False
+        self._last_counter = 0
+        self.snapshots = 0
+        self.incomplete = 0  # snapshots begun and abandoned
+
+    def add(self, frame: PlantStatusFrame) -> PlantStatusRecord | None:
+        if frame.field == 0:
+            if self._values:
+                self.incomplete += 1
+            self._values, self._final = [frame.value], frame.final
+        elif (
+            self._values
+            and frame.field == len(self._values)
+            and frame.final == self._final
+            and frame.counter == next_counter(self._last_counter)
+        ):
+            self._values.append(frame.value)
+        else:
+            if self._values:
+                self.incomplete += 1
+            self._values = []
+            return None
+        self._last_counter = frame.counter
+        if len(self._values) < len(PLANT_STATUS_FIELDS):
+            return None
+        record = PlantStatusRecord(int(self._final), *self._values)
+        self._values = []
+        self.snapshots += 1
+        return record
+
+
 class SensorIntake:
     def __init__(
         self,
@@ -100,6 +149,8 @@ class SensorIntake:
         self.own_frames = 0
         self.rejected: Counter[str] = Counter()
         self._truth_angle: TruthAngle | None = None
+        self.plant_status = PlantStatusAssembler()
+        self.final_status_seen = False
         # The plant's clock: its truth counters (one per sample period) unwrapped.
         self.plant_clock = CounterUnwrap()
         self.sample_period_s = sample_period_s
@@ -171,7 +222,13 @@ class SensorIntake:
                 self.reject("stale", f"sensor counter {frame.counter} is older than the last",
                             log_time_ns, cycle)
             return verdict
-        if isinstance(frame, TruthAngle):
+        if isinstance(frame, PlantStatusFrame):
+            # Authenticated (or, on a classic bus, contract-valid) frames only reach here.
+            record = self.plant_status.add(frame)
+            if record is not None:
+                self.recording.write(PLANT_STATUS, log_time_ns, record)
+                self.final_status_seen = self.final_status_seen or bool(record.final)
+        elif isinstance(frame, TruthAngle):
             self._truth_angle = frame
         elif isinstance(frame, TruthBall):
             angle = self._truth_angle

@@ -43,6 +43,7 @@ from ballbeam.protocol.secoc import FrameAuthenticator
 from ballbeam.runtime.bus import recv_frame
 from ballbeam.runtime.daemon.command_out import CommandOut
 from ballbeam.runtime.daemon.intake import SensorIntake, SentCommands
+from ballbeam.runtime.peer_link import signal_run_over
 from ballbeam.runtime.stop import StopFlag
 from ballbeam.runtime.ticker import Ticker
 
@@ -55,6 +56,9 @@ PHASE_PROBE_S = 0.05
 # (a random frame passes the CRC-16 once in 65,536 tries).
 SECOND_WRITER_FRAMES_AUTHENTICATED = 1
 SECOND_WRITER_FRAMES_CLASSIC = 3
+# After the run, how long to listen for the emulator's final counters (it sends them within a
+# sensor period or two of hearing that the run is over).
+FINAL_STATUS_WAIT_S = 0.5
 
 
 class PlantLostError(BallbeamError, TimeoutError):
@@ -74,6 +78,8 @@ class DaemonStats:
     theta_violation_events: int = 0
     authenticated: bool = False
     second_writer_frames: int = 0
+    plant_status_snapshots: int = 0  # whole snapshots of the emulator's counters recorded
+    plant_status_incomplete: int = 0  # snapshots with a frame lost or out of order
     rejected: Counter[str] = field(default_factory=Counter)
     end_reason: str = "completed"
 
@@ -99,8 +105,12 @@ class ControllerDaemon:
         recording: RunRecording,
         stop: StopFlag,
         auth: FrameAuthenticator | None = None,
+        run_over_fd: int | None = None,
     ) -> None:
+        """``run_over_fd``: the daemon's end of ``ballbeam run``'s peer link, to tell the
+        emulator when the run is over and record its final counters."""
         self.config = config
+        self.run_over_fd = run_over_fd
         self.design = design
         self.bus = bus
         self.recording = recording
@@ -137,6 +147,8 @@ class ControllerDaemon:
         self._stats.rejected = self.intake.rejected
         self._stats.command_resends = self.commands.resends
         self._stats.second_writer_frames = self.intake.second_writer_frames
+        self._stats.plant_status_snapshots = self.intake.plant_status.snapshots
+        self._stats.plant_status_incomplete = self.intake.plant_status.incomplete
         return self._stats
 
     @property
@@ -382,6 +394,23 @@ class ControllerDaemon:
             self._cycle()
             self._record_timing(tick.deadline_ns, tick.start_ns, tick.skipped)
 
+    def _await_final_status(self) -> None:
+        """Record what arrives until the emulator's final counters have (bounded wait)."""
+        give_up = time.monotonic() + FINAL_STATUS_WAIT_S
+        while not self.intake.final_status_seen:
+            remaining_s = give_up - time.monotonic()
+            if remaining_s <= 0:
+                self._event("plant_status_missing",
+                            f"no final status from the emulator within {FINAL_STATUS_WAIT_S} s")
+                return
+            message = self._recv(min(remaining_s, 0.05))
+            if message is None:
+                continue
+            if self.config.run.mode == "realtime":  # lock-step's log clock is the cycle's
+                self.log_time_ns = max(self.log_time_ns, self._wall_ns())
+            # The intake alone: the run is over, so a repeated sample gets no command.
+            self.intake.handle(message, self.log_time_ns, self.state.cycle)
+
     def _wall_ns(self) -> int:
         return self.wall_origin_ns + time.monotonic_ns() - self.mono_origin_ns
 
@@ -399,6 +428,8 @@ class ControllerDaemon:
     def _shutdown(self) -> None:
         """0 V, disabled — sent a few times since a frame can be lost — then the stop event."""
         self.commands.shutdown(self.log_time_ns, self.state.cycle)
+        if self.run_over_fd is not None and signal_run_over(self.run_over_fd):
+            self._await_final_status()
         reason = self.stop.signal_name if self.stop.signal_name else self._stats.end_reason
         if self.stop.signal_name in ("SIGINT", "SIGTERM"):
             self._stats.end_reason = self.stop.signal_name

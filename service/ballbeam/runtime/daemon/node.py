@@ -20,6 +20,7 @@ from ballbeam.protocol.frames import FrameContract
 from ballbeam.protocol.secoc import FrameAuthenticator
 from ballbeam.runtime.bus import open_bus
 from ballbeam.runtime.daemon.loop import ControllerDaemon
+from ballbeam.runtime.peer_link import run_over_fd
 from ballbeam.runtime.process import (
     REALTIME_SWITCH_INTERVAL_S,
     apply_scheduling,
@@ -162,13 +163,15 @@ def _run_recorded(
             if secret is None:
                 raise BusError(NO_SECRET.format(bus=config.bus.interface))
             auth = FrameAuthenticator(secret)
+        link_fd = run_over_fd()  # `ballbeam run`'s peer link: the run's end is told through it
         recording = RunRecording(recorder)  # every channel of the log, the live view's too
         if live is not None:
             live.start()
             log.info("live view on %s (Foxglove: Open connection, Foxglove WebSocket)", live.url)
         bus = open_bus(config.bus)
         try:
-            daemon = ControllerDaemon(config, design, bus, contract, recording, stop, auth)
+            daemon = ControllerDaemon(config, design, bus, contract, recording, stop, auth,
+                                      run_over_fd=link_fd)
             settle_heap()
             try:
                 stats = daemon.run()
