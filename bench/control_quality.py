@@ -6,6 +6,7 @@ physics step.
     .venv/bin/python bench/control_quality.py --quick         # fewer seeds
     .venv/bin/python bench/control_quality.py --config configs/paths/rate_limited_9325.toml
     .venv/bin/python bench/control_quality.py --set tracker.r=0.1 --only paper --json out.json
+    .venv/bin/python bench/control_quality.py --bus --processes 1   # over the bus (~25 min)
 
 Sets: the paper start over 20 noise seeds; 30 seeded random starts (|θ0| <= 52°, |x0| <= 0.2 m);
 starts on both angle limits; robustness (ball gain 0.8/1.2, motor gain 0.9/1.1, dead zone
@@ -21,9 +22,10 @@ import json
 import math
 import statistics
 import sys
+import tempfile
 import time
 from dataclasses import dataclass
-from functools import cache
+from functools import cache, partial
 from multiprocessing import Pool
 from pathlib import Path
 from typing import Any
@@ -31,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from ballbeam.assembly import minimum_time_s, run_offline
-from ballbeam.config import load_config
+from ballbeam.config import Config, load_config
 from ballbeam.core.metrics import sign_changes
 
 REPO = Path(__file__).resolve().parents[1]
@@ -111,7 +113,44 @@ def build_cases(config: str, extra: list[str], quick: bool, only: set[str] | Non
     return cases
 
 
-def run_case(case: Case) -> dict[str, Any]:
+@dataclass(frozen=True)
+class CaseRun:
+    """What one run gives the bench, offline or over the bus."""
+
+    metrics: dict[str, Any]  # the run's summary metrics (rest_ratio, input_tv_ratio, ...)
+    time_s: np.ndarray  # command instants
+    voltage_v: np.ndarray  # the commands
+    plan_end_s: float
+
+
+def run_case_offline(config: Config) -> CaseRun:
+    result = run_offline(config)
+    return CaseRun(
+        result.metrics.as_dict(), result.trace.time_s, result.trace.voltage_v,
+        result.design.plan_duration_s,
+    )
+
+
+def run_case_bus(config_path: str, overrides: list[str]) -> CaseRun:
+    """``ballbeam run`` in lock-step (two processes on a private ff11:: group), its log read
+    back; the plan's end is the last cycle whose reference is not the origin at rest."""
+    from ballbeam.evaluation.summary import run_series, summarise
+    from ballbeam.logs.reader import read_log
+    from ballbeam.runtime.launcher import launch_run
+
+    with tempfile.TemporaryDirectory(prefix="control-quality-") as directory:
+        result = launch_run(
+            config_path, [*overrides, "run.mode='lockstep'", f"run.log_dir='{directory}'"]
+        )
+        run_log = read_log(result.log_path)
+    series = run_series(run_log)
+    reference_input_v = np.asarray(run_log.topics["/reference"].values["input_v"], dtype=float)
+    moving = np.any(series.reference_states != 0.0, axis=1) | (reference_input_v != 0.0)
+    plan_end_s = float(series.reference_time_s[np.flatnonzero(moving)[-1]]) if moving.any() else 0.0
+    return CaseRun(summarise(run_log), series.cycle_time_s, series.voltage_v, plan_end_s)
+
+
+def run_case(case: Case, bus: bool = False) -> dict[str, Any]:
     t_star = cached_minimum_time_s(case.config, case.start)
     duration_s = (t_star if t_star is not None else 2.0) + EXTRA_S
     overrides = [
@@ -120,20 +159,21 @@ def run_case(case: Case) -> dict[str, Any]:
         f"run.duration_s={duration_s:.3f}",
         *case.overrides,
     ]
-    config = load_config(case.config, overrides)
-    result = run_offline(config)
-    metrics = result.metrics
+    run = (
+        run_case_bus(case.config, overrides) if bus
+        else run_case_offline(load_config(case.config, overrides))
+    )
+    metrics = run.metrics
     # Dither while the plan runs (the issue's dither_hz only looks at the last second): on the
     # limit arcs u_d is 0 and any sign flip of u is the loop's own.
-    trace = result.trace
-    during_plan = trace.time_s < result.design.plan_duration_s
-    plan_sign_changes_hz = sign_changes(trace.voltage_v[during_plan]) / max(
-        result.design.plan_duration_s, 1e-3
-    )
+    during_plan = run.time_s < run.plan_end_s
+    plan_sign_changes_hz = sign_changes(run.voltage_v[during_plan]) / max(run.plan_end_s, 1e-3)
     # ... and in the 1.5 s after it, while the ball is caught (the firm rest gains fade there).
-    plan_end_s = result.design.plan_duration_s
-    after_plan = (trace.time_s >= plan_end_s) & (trace.time_s < plan_end_s + SETTLE_WINDOW_S)
-    settle_sign_changes_hz = sign_changes(trace.voltage_v[after_plan]) / SETTLE_WINDOW_S
+    after_plan = (run.time_s >= run.plan_end_s) & (
+        run.time_s < run.plan_end_s + SETTLE_WINDOW_S
+    )
+    settle_sign_changes_hz = sign_changes(run.voltage_v[after_plan]) / SETTLE_WINDOW_S
+    rest_ratio = metrics["rest_ratio"]
     return {
         "settle_sign_changes_hz": settle_sign_changes_hz,
         "plan_sign_changes_hz": plan_sign_changes_hz,
@@ -142,14 +182,15 @@ def run_case(case: Case) -> dict[str, Any]:
         "start": case.start,
         "seed": case.seed,
         "t_star_s": t_star,
-        "plan_s": result.design.plan_duration_s,
-        "rest_time_s": metrics.rest_time_s,
-        "rest_ratio": metrics.rest_ratio if metrics.rest_ratio is not None else math.inf,
-        "input_tv_ratio": metrics.input_tv_ratio,
-        "dither_hz": metrics.dither_hz,
-        "largest_step_v": metrics.largest_step_v,
-        "max_abs_theta_deg": metrics.max_abs_theta_deg,
-        "settle_time_s": metrics.settle_time_s,
+        "plan_s": run.plan_end_s,
+        "rest_time_s": metrics["rest_time_s"],
+        "rest_ratio": rest_ratio if rest_ratio is not None else math.inf,
+        "input_tv_ratio": metrics["input_tv_ratio"],
+        "dither_hz": metrics["dither_hz"],
+        "largest_step_v": metrics["largest_step_v"],
+        "max_abs_theta_deg": metrics["max_abs_theta_deg"],
+        "settle_time_s": metrics["settle_time_s"],
+        "frames_rejected": metrics.get("frames_rejected", 0),
     }
 
 
@@ -203,12 +244,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--only", help="comma-separated sets: paper,random,limits,robust")
     parser.add_argument("--json", type=Path, help="write every run's figures here")
     parser.add_argument("--processes", type=int, default=2)
+    parser.add_argument(
+        "--bus", action="store_true",
+        help="each run over the bus in lock-step (ballbeam run: two processes a run)",
+    )
     args = parser.parse_args(argv)
     only = set(args.only.split(",")) if args.only else None
     cases = build_cases(args.config, args.overrides, args.quick, only)
     started = time.perf_counter()
     with Pool(args.processes) as pool:
-        rows = pool.map(run_case, cases, chunksize=1)
+        rows = pool.map(partial(run_case, bus=args.bus), cases, chunksize=1)
     groups: dict[str, list[dict[str, Any]]] = {}
     for row in rows:
         groups.setdefault(row["group"], []).append(row)
@@ -217,7 +262,8 @@ def main(argv: list[str] | None = None) -> int:
         f"{'dither':>8}{'plan sc':>8}{'settle sc':>10}{'step V':>8}{'|θ| max':>9}"
         "  verdict / worst rest"
     )
-    print(f"config {args.config} {' '.join(args.overrides)}")
+    where = "over the bus, lock-step" if args.bus else "offline"
+    print(f"config {args.config} {' '.join(args.overrides)} ({where})")
     print(header)
     summaries = {}
     for group, group_rows in groups.items():
