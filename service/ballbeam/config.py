@@ -133,7 +133,7 @@ class TrackerSection(_Section):
         "fade into rest_r's over rest_firm_s"
     )
     rest_firm_s: float = Field(
-        1.5, ge=0, le=60, description="how long the firmer rest gains take to fade [s] "
+        3.0, ge=0, le=60, description="how long the firmer rest gains take to fade [s] "
         "(0: rest_r's from the plan's end)"
     )
     far_q: tuple[float, ...] | None = Field(
