@@ -133,8 +133,9 @@ def run_case_offline(config: Config) -> CaseRun:
 
 def run_case_bus(config_path: str, overrides: list[str]) -> CaseRun:
     """``ballbeam run`` in lock-step (two processes on a private ff11:: group), its log read
-    back; the plan's end is the last cycle whose reference is not the origin at rest."""
+    back; the plan's end from the design the run recorded."""
     from ballbeam.evaluation.summary import run_series, summarise
+    from ballbeam.logs import design_record
     from ballbeam.logs.reader import read_log
     from ballbeam.runtime.launcher import launch_run
 
@@ -144,10 +145,12 @@ def run_case_bus(config_path: str, overrides: list[str]) -> CaseRun:
         )
         run_log = read_log(result.log_path)
     series = run_series(run_log)
-    reference_input_v = np.asarray(run_log.topics["/reference"].values["input_v"], dtype=float)
-    moving = np.any(series.reference_states != 0.0, axis=1) | (reference_input_v != 0.0)
-    plan_end_s = float(series.reference_time_s[np.flatnonzero(moving)[-1]]) if moving.any() else 0.0
-    return CaseRun(summarise(run_log), series.cycle_time_s, series.voltage_v, plan_end_s)
+    design = design_record.decode_design(
+        run_log.attachments[design_record.ATTACHMENT_NAME], str(result.log_path)
+    )
+    return CaseRun(
+        summarise(run_log), series.cycle_time_s, series.voltage_v, design.plan_duration_s
+    )
 
 
 def run_case(case: Case, bus: bool = False) -> dict[str, Any]:
