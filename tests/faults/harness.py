@@ -31,7 +31,8 @@ from ballbeam.protocol.frames import VOLTAGE_COMMAND_ID, FrameContract, VoltageC
 from ballbeam.protocol.secoc import AUTHENTICATED_LENGTH, SECRET_BYTES, FrameAuthenticator
 from ballbeam.runtime.bus import IPV6_MULTICAST_ALL, free_udp_port, isolated_group, multicast_scope
 from ballbeam.runtime.launcher import secret_pipe
-from ballbeam.runtime.peer_link import PEER_LINK_ENV, peer_link_pipe
+from ballbeam.runtime.owner_lock import PEER_LOCK_ENV, create_owner_lock
+from ballbeam.runtime.peer_link import PEER_LINK_ENV, PEER_LINK_WRITE_ENV, peer_link_pipe
 
 from ..conftest import PAPER, REPO, ballbeam_argv
 
@@ -263,13 +264,17 @@ class Bench:
         self.log_path = tmp / f"{mode}-{secrets.token_hex(4)}.mcap"
         self.watch = BusWatch(self.group, self.port) if watch else None
         self._files: list[Any] = []
-        # The launcher's dead-man link (runtime/peer_link.py), as `ballbeam run` makes it.
+        # The launcher's dead-man link (runtime/peer_link.py), as `ballbeam run` makes it: the
+        # pipe, and the robust lock the daemon holds (runtime/owner_lock.py).
         link = peer_link_pipe() if peer_link else None
+        lock_fd = create_owner_lock() if peer_link else None
+        lock_fds = () if lock_fd is None else (lock_fd,)
+        lock_env = {} if lock_fd is None else {PEER_LOCK_ENV: str(lock_fd)}
         try:
             self.emulator = self._spawn(
                 "emulator", ballbeam_argv("emulator", str(PAPER), *set_args(self.overrides)),
-                pass_fd=link[0] if link else None,
-                env={**os.environ, PEER_LINK_ENV: str(link[0])} if link else None,
+                pass_fds=(link[0], *lock_fds) if link else (),
+                env={**os.environ, PEER_LINK_ENV: str(link[0]), **lock_env} if link else None,
             )
             daemon_args = [
                 "daemon", str(PAPER), *set_args(self.overrides), "--log", str(self.log_path)
@@ -278,22 +283,27 @@ class Bench:
                 argv = ballbeam_argv(*daemon_args)
             else:
                 argv = [sys.executable, "-c", FSIZE_WRAPPER, str(file_size_limit), *daemon_args]
-            self.daemon = self._spawn("daemon", argv, pass_fd=link[1] if link else None)
+            self.daemon = self._spawn(
+                "daemon", argv,
+                pass_fds=(link[1], *lock_fds) if link else (),
+                env={**os.environ, PEER_LINK_WRITE_ENV: str(link[1]), **lock_env}
+                if link else None,
+            )
         finally:
-            for fd in link or ():
+            for fd in (*(link or ()), *lock_fds):
                 os.close(fd)
 
     def _spawn(
         self,
         name: str,
         argv: list[str],
-        pass_fd: int | None = None,
+        pass_fds: tuple[int, ...] = (),
         env: dict[str, str] | None = None,
     ) -> subprocess.Popen[bytes]:
         # stderr to a file: a pipe nobody reads could fill up and stall the process.
         stream = (self.tmp / f"{name}-{secrets.token_hex(3)}.stderr").open("w+b")
         self._files.append(stream)
-        fds = () if pass_fd is None else (pass_fd,)
+        fds = pass_fds
         secret_fd = secret_pipe(self.secret) if self.secret is not None else None
         if secret_fd is not None:
             fds = (*fds, secret_fd)

@@ -212,21 +212,20 @@ def test_daemon_sigkilled_at_random_moments_plant_is_zeroed_and_log_recoverable(
 
 
 PEER_KILLS = 5
-# The link acts at the emulator's next sensor period (1 ms) after the kernel has closed the dead
-# daemon's files; allowed: two periods more for scheduling on this shared machine.
-LINK_SLACK_MS = 3.0
+# The issue's bound: 0 V within 3 control periods of the kill.
+PEER_LOSS_BOUND_MS = 3 * DEFAULTS.controller.period_s * 1e3
 
 
 @pytest.mark.bus
 @pytest.mark.slow
-def test_with_the_launchers_link_a_killed_daemon_leaves_the_plant_at_0v_before_its_watchdog(
+def test_with_the_launchers_link_a_killed_daemon_leaves_the_plant_at_0v_within_3_periods(
     tmp_path: Path,
 ) -> None:
-    """`ballbeam run` links the two processes with a pipe only the daemon can write (never
-    does): its death closes it, and the emulator zeroes the drive at its next sensor period,
-    not after the 20 ms watchdog. The kernel closes a dying process's files only after tearing
-    down its memory (10–20 ms for a daemon with NumPy and SciPy loaded, measured here: 1.7 ms
-    for a bare interpreter), so the figure is: kill → zeroed, against kill → reaped."""
+    """`ballbeam run` links the two processes with a pipe and a robust mutex only the daemon
+    holds (runtime/peer_link.py, runtime/owner_lock.py). The kernel releases the mutex, "owner
+    died", at the start of the daemon's exit, before it frees the daemon's memory (which takes
+    10–20 ms, and only after it would the pipe close): the emulator's once-a-period try of the
+    lock then zeroes the drive. The figure is kill → zeroed, against kill → reaped."""
     rng = random.Random(7)
     zeroed_ms, reaped_ms = [], []
     for index in range(PEER_KILLS):
@@ -250,6 +249,6 @@ def test_with_the_launchers_link_a_killed_daemon_leaves_the_plant_at_0v_before_i
         "kill_to_zeroed": f"median {statistics.median(zeroed_ms):.1f}, max {max(zeroed_ms):.1f}",
         "kill_to_reaped": f"median {statistics.median(reaped_ms):.1f}, max {max(reaped_ms):.1f}",
     })
-    for zeroed_at, reaped_at in zip(zeroed_ms, reaped_ms, strict=True):
-        assert 0.0 < zeroed_at <= reaped_at + LINK_SLACK_MS, (zeroed_ms, reaped_ms)
-    assert statistics.median(zeroed_ms) < WATCHDOG_MS, zeroed_ms
+    assert all(0.0 < zeroed <= PEER_LOSS_BOUND_MS for zeroed in zeroed_ms), zeroed_ms
+    # And not merely the pipe arriving early: the memory teardown it waits for is longer.
+    assert statistics.median(zeroed_ms) < statistics.median(reaped_ms), (zeroed_ms, reaped_ms)

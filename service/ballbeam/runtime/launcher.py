@@ -30,6 +30,7 @@ from ballbeam.runtime.exit_codes import (
     EXIT_PLANT_LOST,
     EXIT_SECOND_WRITER,
 )
+from ballbeam.runtime.owner_lock import PEER_LOCK_ENV, create_owner_lock
 from ballbeam.runtime.peer_link import PEER_LINK_ENV, PEER_LINK_WRITE_ENV, peer_link_pipe
 from ballbeam.runtime.process import new_log_path, realtime_permitted, realtime_refused_message
 
@@ -145,6 +146,8 @@ def launch_run(
     # The dead-man link (runtime/peer_link.py): the emulator zeroes the drive within a sensor
     # period of the daemon's death, whatever kills it, and stops when the daemon's run is over.
     link_read, link_write = peer_link_pipe()
+    lock_fd = create_owner_lock()  # its fast half, where glibc has robust mutexes
+    lock_env = {} if lock_fd is None else {PEER_LOCK_ENV: str(lock_fd)}
     # The run's frame-authentication key (protocol/secoc.py): to each child through a pipe of
     # its own, never on a command line, in the environment or in the log.
     secret = secrets.token_bytes(SECRET_BYTES) if config.bus.authenticated else None
@@ -161,8 +164,10 @@ def launch_run(
             stdout=subprocess.DEVNULL,
             stderr=subprocess.PIPE,
             text=True,
-            pass_fds=tuple(fd for fd in (link_read, emulator_secret) if fd is not None),
-            env={**os.environ, PEER_LINK_ENV: str(link_read)},
+            pass_fds=tuple(
+                fd for fd in (link_read, lock_fd, emulator_secret) if fd is not None
+            ),
+            env={**os.environ, PEER_LINK_ENV: str(link_read), **lock_env},
         )
         daemon = subprocess.Popen(
             [*base, "ballbeam", "daemon", *config_args, "--log", str(log_path), *live_args,
@@ -170,13 +175,15 @@ def launch_run(
             stdout=subprocess.DEVNULL,
             stderr=subprocess.PIPE,
             text=True,
-            pass_fds=tuple(fd for fd in (link_write, daemon_secret) if fd is not None),
+            pass_fds=tuple(
+                fd for fd in (link_write, lock_fd, daemon_secret) if fd is not None
+            ),
             # Its end of the link also says when the run is over (the emulator then sends its
             # final counters, and the daemon records them).
-            env={**os.environ, PEER_LINK_WRITE_ENV: str(link_write)},
+            env={**os.environ, PEER_LINK_WRITE_ENV: str(link_write), **lock_env},
         )
     finally:
-        for fd in (link_read, link_write, emulator_secret, daemon_secret):
+        for fd in (link_read, link_write, lock_fd, emulator_secret, daemon_secret):
             if fd is not None:
                 os.close(fd)
     if on_started is not None:

@@ -20,6 +20,7 @@ from ballbeam.protocol.frames import FrameContract
 from ballbeam.protocol.secoc import FrameAuthenticator
 from ballbeam.runtime.bus import open_bus
 from ballbeam.runtime.daemon.loop import ControllerDaemon
+from ballbeam.runtime.owner_lock import OwnerLock
 from ballbeam.runtime.peer_link import run_over_fd
 from ballbeam.runtime.process import (
     REALTIME_SWITCH_INTERVAL_S,
@@ -164,6 +165,9 @@ def _run_recorded(
                 raise BusError(NO_SECRET.format(bus=config.bus.interface))
             auth = FrameAuthenticator(secret)
         link_fd = run_over_fd()  # `ballbeam run`'s peer link: the run's end is told through it
+        peer_lock = OwnerLock.from_environment()  # held till death: the emulator hears of it
+        if peer_lock is not None:
+            peer_lock.hold()
         recording = RunRecording(recorder)  # every channel of the log, the live view's too
         if live is not None:
             live.start()
