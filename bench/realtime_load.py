@@ -55,10 +55,14 @@ def unprivileged_prefix() -> list[str] | None:
             "--no-new-privs", "--", prlimit, "--rtprio=0:0"]
 
 
-def run_once(prefix: list[str], duration_s: float, log_dir: Path) -> dict[str, Any]:
+def run_once(
+    prefix: list[str], duration_s: float, log_dir: Path, overrides: list[str]
+) -> dict[str, Any]:
     command = [*prefix, sys.executable, "-m", "ballbeam", "run",
                "--set", "run.mode='realtime'", "--set", f"run.duration_s={duration_s}",
                "--set", f"run.log_dir='{log_dir}'", "--json"]
+    for override in overrides:
+        command += ["--set", override]
     done = subprocess.run(command, capture_output=True, text=True, check=False,
                           timeout=duration_s * 3 + 120)
     if not done.stdout.strip():
@@ -75,23 +79,34 @@ def run_once(prefix: list[str], duration_s: float, log_dir: Path) -> dict[str, A
         "plant_missed_periods": summary.get("plant_missed_periods"),
         "scheduling": run.get("scheduling_realtime_priority"),
         "guard_latency_us": run.get("scheduling_guard_latency_us"),
+        "fair_slice": run.get("scheduling_fair_slice"),
+        "late_samples": summary.get("late_samples"),
     }
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--duration", type=float, default=60.0, help="seconds per run")
+    parser.add_argument("--loads", type=int, nargs="+", default=[0, HOGS],
+                        help="CPU-bound processes to run alongside, one run per value")
+    parser.add_argument("--variant", choices=("all", "real-time", "unprivileged"), default="all")
+    parser.add_argument("--repeat", type=int, default=1, help="runs per variant and load")
+    parser.add_argument("--log-dir", type=Path, help="keep the runs' logs here (default: "
+                        "a temporary directory, removed at the end)")
+    parser.add_argument("--set", dest="overrides", action="append", default=[],
+                        metavar="KEY=VALUE", help="a config override for every run")
     args = parser.parse_args(argv)
     unprivileged = unprivileged_prefix()
-    variants = [("real-time scheduling", [])]
-    if unprivileged is not None:
+    variants = [("real-time scheduling", [])] if args.variant != "unprivileged" else []
+    if unprivileged is not None and args.variant != "real-time":
         variants.append(("unprivileged", unprivileged))
     rows = []
-    with tempfile.TemporaryDirectory() as tmp:
-        for load in (0, HOGS):
-            for name, prefix in variants:
+    with tempfile.TemporaryDirectory() as tmp_dir:
+        tmp = args.log_dir or tmp_dir
+        for load in args.loads:
+            for name, prefix in [variant for variant in variants for _ in range(args.repeat)]:
                 with cpu_load(load, args.duration * 3 + 120):
-                    row = run_once(prefix, args.duration, Path(tmp))
+                    row = run_once(prefix, args.duration, Path(tmp), args.overrides)
                 rows.append({"variant": name, "cpu_hogs": load, **row})
                 print(json.dumps(rows[-1]), flush=True)
     print()

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import secrets
 import threading
+import time
 from pathlib import Path
 
 import can
@@ -32,7 +33,7 @@ from ballbeam.runtime.daemon.intake import SensorIntake, SentCommands
 from ballbeam.runtime.daemon.node import run_daemon
 from ballbeam.runtime.stop import StopFlag
 from ballbeam.runtime.ticker import Tick
-from ballbeam_emulator.node import PlantEmulator
+from ballbeam_emulator.node import PlantEmulator, arrival_ns
 
 CONTRACT = FrameContract.load()
 
@@ -59,6 +60,39 @@ def recording(tmp_path: Path) -> RunRecording:
     recorder = Recorder(tmp_path / "parts.mcap", metadata={})
     yield RunRecording(recorder)
     recorder.close()
+
+
+def test_a_sample_read_behind_the_stream_is_history_not_a_measurement(
+    recording: RunRecording,
+) -> None:
+    """Real time: the plant samples period i at its origin + i ms (its counters count periods).
+    A starved daemon reading its socket behind the stream takes older samples; one 2 ms or more
+    older than the freshest a sample has been is no measurement of now: the cycle coasts
+    instead (counted). A daemon late within its period is not fooled (the freshest relation
+    comes from the least age, which lateness only adds to)."""
+    intake = SensorIntake(CONTRACT, recording, late_sample_periods=2)
+    ms = 1_000_000
+    origin_ns = 5_000 * ms
+    # (counter, the plant period it was sampled in, when the daemon takes it [ms after origin])
+    reads = [
+        (250, 250, 250.2),  # 0.2 ms old: the freshest relation
+        (251, 251, 251.2),
+        (252, 252, 253.1),  # the daemon 0.9 ms late within its period: 1.1 ms old, taken
+        (253, 253, 253.3),
+        (2, 258, 260.4),  # past the wrap: period 258 read at 260.4, 2.2 ms old: coasted
+        (4, 260, 261.5),  # 1.3 ms old: taken
+        (7, 263, 263.2),  # in step again
+    ]
+    taken = []
+    for counter, _period, at_ms in reads:
+        intake.handle(framed(SensorFrame(counter, 10, -20, 0)), 0, 0)
+        taken.append(intake.take(origin_ns + round(at_ms * ms)) is not None)
+    assert taken == [True, True, True, True, False, True, True]
+    assert intake.late_samples == 1
+    # Lock-step (no lateness bound): every sample is a measurement.
+    lockstep = SensorIntake(CONTRACT, recording)
+    lockstep.handle(framed(SensorFrame(3, 10, -20, 0)), 0, 50)
+    assert lockstep.take(10**12) is not None
 
 
 def test_intake_accepts_samples_in_order_and_judges_the_rest(recording: RunRecording) -> None:
@@ -228,6 +262,39 @@ def test_after_a_watchdog_trip_the_plant_obeys_a_restarted_daemon_at_once() -> N
         assert emulator.watchdog_zeroed and emulator.voltage_v == 0.0
         restarted = emulator._accept_command(framed(VoltageCommand(0, 1.0, True, 0)))
         assert restarted is not None and restarted.voltage_v == 1.0
+    finally:
+        emulator.stop()
+        bus.shutdown()
+
+
+def test_a_command_acts_from_when_it_reached_the_host_not_when_the_emulator_got_to_it() -> None:
+    """Real time: a command that waited 4 ms in the socket while the emulator was off the CPU
+    drives the plant from its arrival (the kernel's receive stamp): the physics runs on the old
+    voltage up to that moment only, and the watchdog counts from it."""
+    config = virtual_config(1.0, "run.mode='realtime'")
+    bus = can.Bus(interface="virtual", channel=config.bus.channel)
+    emulator = PlantEmulator(config, bus, CONTRACT)
+    try:
+        emulator._apply(VoltageCommand(0, 0.0, True, 0), now_ns=0)  # enabled: physics runs
+        now_ns = time.monotonic_ns()
+        physics_ns, arrived_ns = now_ns - 10_000_000, now_ns - 4_000_000
+        late = framed(VoltageCommand(1, 3.0, True, 0))
+        late.timestamp = (arrived_ns + time.time_ns() - time.monotonic_ns()) * 1e-9  # wall clock
+        assert abs(arrival_ns(late, time.monotonic_ns()) - arrived_ns) < 50_000
+        before = emulator.state.copy()
+        new_physics_ns = emulator._take_command(late, physics_ns, limit_ns=now_ns)
+        substep_ns = emulator.substep_ns
+        assert abs(new_physics_ns - arrived_ns) <= substep_ns + 50_000
+        assert abs(emulator.last_command_ns - arrived_ns) < 50_000
+        assert emulator.voltage_v == 3.0
+        # The physics between: the old 0 V for the 6 ms up to the arrival, nothing after.
+        steps = (new_physics_ns - physics_ns) // substep_ns
+        expected = emulator.physics.advance(before, 0.0, steps)
+        assert np.allclose(emulator.state, expected, rtol=0, atol=1e-12)
+        # No stamp, or one more than a second off: the command counts from now.
+        stampless = framed(VoltageCommand(2, 1.0, True, 0))
+        stampless.timestamp = 0.0
+        assert arrival_ns(stampless, now_ns) == now_ns
     finally:
         emulator.stop()
         bus.shutdown()

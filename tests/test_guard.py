@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -12,10 +13,13 @@ from ballbeam.assembly import controller_design
 from ballbeam.config import load_config
 from ballbeam.core.guard import (
     AngleGuard,
+    LatenessWatch,
     guarded_voltage,
+    lateness_step,
     make_soft_cap,
     soft_cap_v,
     stopping_distance_rad,
+    watch_lateness,
 )
 from ballbeam.core.model import PhysicalConstants
 
@@ -155,3 +159,68 @@ def test_the_soft_caps_allowed_rate_runs_on_for_the_reaction_time_then_brakes_to
         )
         assert all(late < prompt for late, prompt in
                    zip(soft.allowed_rate_rad_s[1:], plain.allowed_rate_rad_s[1:], strict=True))
+
+
+def servo_successor(theta: float, rate: float, voltage_v: float, horizon_s: float) -> np.ndarray:
+    """θ, θ̇ after ``horizon_s`` at a held voltage, integrated (the independent answer)."""
+    solution = solve_ivp(
+        lambda _t, y: [y[1], -ALPHA_BETA * y[1] + ALPHA * voltage_v],
+        (0.0, horizon_s), [theta, rate], rtol=1e-11, atol=1e-13,
+    )
+    return np.asarray(solution.y[:, -1])
+
+
+def test_the_lateness_look_ahead_is_the_servos_response_over_the_longer_hold() -> None:
+    """Real time: a loop 3 ms later than the design allowed for holds each command that much
+    longer; the barrier's look-ahead is then the servo's response over period + allowance +
+    the next lateness step (4 ms), which an ODE solver gives independently."""
+    config = load_config(None, ["run.mode='realtime'"])
+    real_time_guard = controller_design(config).guard
+    assert real_time_guard is not None and real_time_guard.lateness_steps
+    allowance_ns = real_time_guard.lateness_allowance_ns
+    assert allowance_ns == config.controller.theta_guard_latency_us * 1000
+    step = lateness_step(real_time_guard, 3_000_000)
+    assert step is not None and step[0] == 4_000_000  # 3 ms + 0.25 ms compute − 1 ms → 4 ms
+    _, a, b, c, d = step
+    t0, t1, _, _ = real_time_guard.theta_row
+    r0, r1, _, _ = real_time_guard.rate_row
+    theta, rate, voltage_v = 0.6, -4.0, 3.0
+    base_theta = t0 * theta + t1 * rate + real_time_guard.theta_per_v * voltage_v
+    base_rate = r0 * theta + r1 * rate + real_time_guard.rate_per_v * voltage_v
+    extended = (base_theta + a * base_rate + b * voltage_v, c * base_rate + d * voltage_v)
+    horizon_s = config.controller.period_s + allowance_ns * 1e-9 + step[0] * 1e-9
+    assert extended == pytest.approx(servo_successor(theta, rate, voltage_v, horizon_s),
+                                     rel=1e-8, abs=1e-10)
+    # Covered by the allowance: no extension; offline and lock-step: none at all.
+    assert lateness_step(real_time_guard, 500_000) is None
+    offline_guard = controller_design(load_config(None, [])).guard
+    assert offline_guard is not None and not offline_guard.lateness_steps
+
+
+def test_a_late_loop_brakes_sooner_near_the_limit() -> None:
+    """Racing toward the limit: the voltage the barrier allows shrinks as the measured lateness
+    grows (it must stop the servo within a longer hold), and never grows."""
+    config = load_config(None, ["run.mode='realtime'"])
+    real_time_guard = controller_design(config).guard
+    assert real_time_guard is not None
+    estimate = (math.radians(46.0), 6.0, 0.0, 0.0)
+    allowed = [guarded_voltage(real_time_guard, estimate, 5.0, late_ns)
+               for late_ns in (0, 2_000_000, 4_000_000, 8_000_000, 30_000_000)]
+    assert all(later <= earlier for earlier, later in itertools.pairwise(allowed))
+    assert allowed[-1] < allowed[0]
+
+
+def test_the_lateness_watch_keeps_the_worst_for_its_hold_then_starts_again() -> None:
+    """By hand: hold 3 cycles. A 5 ms cycle is kept over smaller ones for 3 cycles, a larger
+    one replaces it at once, and after the hold the current lateness is the worst."""
+    config = load_config(None, ["run.mode='realtime'", "controller.guard_lateness_hold_s=0.003"])
+    real_time_guard = controller_design(config).guard
+    assert real_time_guard is not None and real_time_guard.lateness_hold_cycles == 3
+    watch = LatenessWatch()
+    seen = []
+    for lateness_ns in (100, 5_000, 200, 300, 400, 500, 9_000, 10, 20):
+        watch = watch_lateness(real_time_guard, watch, lateness_ns)
+        seen.append(watch.worst_ns)
+    assert seen == [100, 5_000, 5_000, 5_000, 5_000, 500, 9_000, 9_000, 9_000]
+    # No lateness steps (offline): the watch never moves.
+    assert watch_lateness(None, LatenessWatch(), 7_000) == LatenessWatch()

@@ -212,3 +212,12 @@ def test_logs_verify_bit_for_bit_under_every_kernel(
         # The synthesis itself may differ in its last bits between kernels: only reported.
         assert isinstance(payload["resynthesis_max_rel_diff"], float)
         assert payload["resynthesis_max_rel_diff"] < 1e-9
+
+
+def test_a_real_time_design_records_its_lateness_look_ahead() -> None:
+    """The guard's lateness steps, allowance and hold come back from the log bit for bit (a
+    real-time run replays its look-ahead from /timing with them)."""
+    design = controller_design(load_config(None, ["run.mode='realtime'"]))
+    assert design.guard is not None and design.guard.lateness_steps
+    decoded = design_record.decode_design(design_record.encode_design(design), "test")
+    assert decoded.guard == design.guard

@@ -57,3 +57,24 @@ def test_a_realtime_run_without_the_privilege_says_how_to_grant_it_and_holds_52(
     assert run["scheduling_realtime_priority"].startswith("refused")
     assert int(run["scheduling_guard_latency_us"]) >= 1000
     assert int(run["scheduling_lateness_probe_max_us"]) >= 0
+    assert run["scheduling_fair_slice"] == "100 us"
+
+
+SLICE_PROBE = (
+    "from ballbeam.runtime.process import request_fair_slice\n"
+    "from ballbeam.runtime.ticker import spin_ns_for_this_process\n"
+    "print(request_fair_slice(100), spin_ns_for_this_process(200))\n"
+    "print(next(line for line in open('/proc/self/sched') if line.startswith('se.slice')))\n"
+)
+
+
+def test_at_normal_priority_the_loop_asks_for_a_short_slice_and_does_not_spin() -> None:
+    """Any user may shorten its fair-scheduler slice; the kernel's own account of the process
+    (/proc/self/sched, Linux 6.12+) shows it. And a loop that is not SCHED_FIFO does not
+    spin before its deadlines (it would spend the CPU share that keeps it on time)."""
+    done = subprocess.run([*unprivileged_prefix(), sys.executable, "-c", SLICE_PROBE],
+                          capture_output=True, text=True, timeout=60, cwd=REPO, check=False)
+    assert done.returncode == 0, done.stderr
+    answer, kernel_line = done.stdout.splitlines()[:2]
+    assert answer == "100 us 0"
+    assert int(kernel_line.split(":")[1]) == 100_000  # ns

@@ -367,7 +367,8 @@ NOT_DESIGN = {
     "plant.nonlinear_ball": True, "plant.hard_stop_deg": 57.0, "plant.sensor_rate_hz": 2000,
     "plant.physics_substeps": 20, "plant.seed": 5, "plant.hold_until_enabled": False,
     "plant.watchdog_ms": 30.0, "plant.lockstep_resend_ms": 30.0, "plant.cpu": 1,
-    "plant.realtime_priority": 10, "plant.command_loss": 0.1, "plant.sensor_loss": 0.1,
+    "plant.realtime_priority": 10, "plant.fair_slice_us": 500, "plant.command_loss": 0.1,
+    "plant.sensor_loss": 0.1,
     "run.duration_s": 2.0, "run.log_dir": "elsewhere", "run.lockstep_poll_us": 5,
     "bus.port": 40000,
 }

@@ -47,7 +47,9 @@ def run_emulator(config: Config, secret: bytes | None = None) -> None:
         auth = FrameAuthenticator(secret)
     stop = StopFlag().install()
     if config.run.mode == "realtime":  # lock-step has no deadlines to protect
-        apply_scheduling(config.plant.cpu, config.plant.realtime_priority)
+        apply_scheduling(
+            config.plant.cpu, config.plant.realtime_priority, config.plant.fair_slice_us
+        )
     peer_link = PeerLink.from_environment()
     bus = open_bus(config.bus)
     emulator = PlantEmulator(config, bus, contract, peer_link, auth)

@@ -48,7 +48,7 @@ from ballbeam.protocol.secoc import CLASSIC_LENGTH, FrameAuthenticator
 from ballbeam.runtime.bus import recv_frame
 from ballbeam.runtime.peer_link import PeerLink
 from ballbeam.runtime.stop import StopFlag
-from ballbeam.runtime.ticker import Ticker
+from ballbeam.runtime.ticker import Ticker, spin_ns_for_this_process
 
 log = logging.getLogger("ballbeam.emulator")
 
@@ -75,6 +75,14 @@ class EmulatorCounters:
     bad_mac: int = 0
     replayed: int = 0  # right MAC, freshness not newer than the last accepted
     out_of_window: int = 0  # right MAC, freshness over a second from this host's clock
+
+
+def arrival_ns(message: can.Message, now_ns: int) -> int:
+    """When ``message`` reached this host on the monotonic clock: python-can stamps it with the
+    kernel's receive time (SO_TIMESTAMPNS, wall clock). ``now_ns`` where there is no stamp or
+    it is implausible (more than a second off)."""
+    stamp_ns = round(message.timestamp * 1e9) - (time.time_ns() - time.monotonic_ns())
+    return stamp_ns if 0 <= now_ns - stamp_ns <= 1_000_000_000 else now_ns
 
 
 class PlantEmulator:
@@ -223,6 +231,20 @@ class PlantEmulator:
             return None
         return command
 
+    def _take_command(self, message: can.Message, physics_ns: int, limit_ns: int) -> int:
+        """Real time: judge ``message``; a valid command acts on the physics from the moment it
+        reached this host (the kernel's receive stamp, not when this process got to it), at
+        most up to ``limit_ns``. Returns the physics' new time."""
+        command = self._accept_command(message)
+        if command is None:
+            return physics_ns
+        now_ns = time.monotonic_ns()
+        arrived_ns = min(max(arrival_ns(message, now_ns), physics_ns), now_ns)
+        due = (min(arrived_ns, limit_ns) - physics_ns) // self.substep_ns
+        self._advance(due)
+        self._apply(command, arrived_ns)
+        return physics_ns + max(due, 0) * self.substep_ns
+
     def _apply(self, command: VoltageCommand, now_ns: int) -> None:
         self.last_command_ns = now_ns
         self.watchdog_zeroed = False
@@ -326,7 +348,8 @@ class PlantEmulator:
         self._send_sample()
 
     def run_realtime(self, stop: StopFlag) -> None:
-        ticker = Ticker(self.sensor_period_ns, spin_ns=self.config.controller.spin_us * 1000)
+        spin_ns = spin_ns_for_this_process(self.config.controller.spin_us)
+        ticker = Ticker(self.sensor_period_ns, spin_ns=spin_ns)
         physics_ns = ticker.origin_ns
         tick = ticker.wait()
         while not stop.is_set():
@@ -334,6 +357,10 @@ class PlantEmulator:
             if stop.is_set():
                 self._take_last_commands(None, lockstep=False)
                 break
+            # Commands that came while this process was off the CPU (or spinning) act from when
+            # they came: the plant is physics, it does not wait for its emulator's turn.
+            while (message := self._recv(0.0)) is not None:
+                physics_ns = self._take_command(message, physics_ns, tick.deadline_ns)
             # Advance to the deadline, then sample: the sensor reads the state at t_k.
             due = (tick.deadline_ns - physics_ns) // self.substep_ns
             self._advance(due)
@@ -354,15 +381,7 @@ class PlantEmulator:
                 message = self._recv((remaining_ns - ticker.spin_ns) * 1e-9)
                 if message is None:
                     break
-                command = self._accept_command(message)
-                if command is None:
-                    continue
-                now_ns = time.monotonic_ns()
-                due = min((now_ns - physics_ns) // self.substep_ns,
-                          (next_deadline_ns - physics_ns) // self.substep_ns)
-                self._advance(due)
-                physics_ns += due * self.substep_ns
-                self._apply(command, now_ns)
+                physics_ns = self._take_command(message, physics_ns, next_deadline_ns)
             self._check_watchdog(time.monotonic_ns())
             tick = ticker.wait()
 

@@ -304,6 +304,12 @@ def _angle_guard(config: Config, model: LinearModel) -> AngleGuard:
         Ad=discrete.Ad,
         Bd=discrete.Bd,
         soft=soft,
+        # Real time: a loop running later than that allowance looks further ahead, as late as
+        # it has lately been (core/guard.py, LatenessWatch).
+        lateness_allowance_ns=controller.theta_guard_latency_us * 1000,
+        lateness_hold_cycles=(
+            round(controller.guard_lateness_hold_s / controller.period_s) if realtime else 0
+        ),
     )
 
 

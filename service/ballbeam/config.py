@@ -276,6 +276,11 @@ class ControllerSection(_Section):
         "its own lateness; if the worst exceeds theta_guard_latency_us, the guard's latency "
         "allowance becomes it plus one period (0: no probe)"
     )
+    guard_lateness_hold_s: float = Field(
+        0.5, ge=0, le=60, description="real time: the angle guard looks ahead as far as the "
+        "loop's worst lateness (skipped periods included) beyond theta_guard_latency_us, kept "
+        "this long after it was measured (0: a fixed look-ahead)"
+    )
     max_guard_latency_us: int = Field(
         30_000, ge=0, le=100_000, description="real time: the most the probe may raise the "
         "guard's latency allowance to"
@@ -343,13 +348,22 @@ class ControllerSection(_Section):
             "limits.theta_deg by more than this (paths that ride the limit touch it)"
         ),
     )
-    spin_us: int = Field(200, ge=0, le=10_000, description="busy-wait before each deadline")
+    spin_us: int = Field(
+        200, ge=0, le=10_000,
+        description="real time: busy-wait before each deadline, under SCHED_FIFO only (at normal "
+        "priority the spin spends the CPU share that keeps the loop on time beside other jobs)",
+    )
     cpu: int | None = Field(
         None, ge=-1, le=1023, description="real time: pin the daemon to this CPU (-1: don't)"
     )
     realtime_priority: int = Field(
         45, ge=0, le=99, description="real time: SCHED_FIFO priority for the daemon, where "
         "permitted (0: normal scheduling); below the kernel's interrupt threads (50)"
+    )
+    fair_slice_us: int = Field(
+        100, ge=0, le=100_000, description="real time, at normal scheduling (SCHED_FIFO "
+        "refused or off): the time slice the daemon asks the kernel for; a short one wakes "
+        "it on time beside CPU-bound processes (Linux 6.12+; 0: the kernel's default)"
     )
     _old_priority = field_validator("realtime_priority", mode="before")(
         _none_is_normal_scheduling
@@ -393,6 +407,10 @@ class PlantSection(_Section):
     realtime_priority: int = Field(
         44, ge=0, le=99, description="real time: SCHED_FIFO priority for the emulator, where "
         "permitted (0: normal scheduling)"
+    )
+    fair_slice_us: int = Field(
+        100, ge=0, le=100_000, description="real time, at normal scheduling: the emulator's "
+        "time slice (as controller.fair_slice_us)"
     )
     _old_priority = field_validator("realtime_priority", mode="before")(
         _none_is_normal_scheduling

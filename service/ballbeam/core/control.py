@@ -22,7 +22,13 @@ from ballbeam.core.adaptation import (
     Gain,
     NoiseAdaptation,
 )
-from ballbeam.core.guard import AngleGuard, guarded_voltage
+from ballbeam.core.guard import (
+    NO_LATENESS,
+    AngleGuard,
+    LatenessWatch,
+    guarded_voltage,
+    watch_lateness,
+)
 from ballbeam.core.model import Row4, as_row4
 from ballbeam.core.plant import SensorReading
 from ballbeam.errors import ConfigError
@@ -295,6 +301,7 @@ class ControllerState:
     # started; then the design's expectation) and the last two positions measured in a row.
     noise_mean_square: float | None = None
     last_positions: tuple[float, ...] = ()
+    lateness: LatenessWatch = NO_LATENESS  # real time: the loop's worst recent lateness
 
 
 @dataclass(frozen=True)
@@ -357,9 +364,13 @@ def initial_estimate(observer: ObserverLaw, measurement: Row2, prior_state: Row4
 
 
 def control_cycle(
-    design: ControllerDesign, state: ControllerState, reading: SensorReading | None
+    design: ControllerDesign,
+    state: ControllerState,
+    reading: SensorReading | None,
+    lateness_ns: int = 0,
 ) -> tuple[ControllerState, CycleOutput]:
-    """One control period. ``reading`` is None when no valid sensor frame arrived in time."""
+    """One control period. ``reading`` is None when no valid sensor frame arrived in time;
+    ``lateness_ns`` (real time): how late the cycle started, skipped periods included."""
     deadzone_v = design.deadzone_at(state)
     measurement = design.measurement(reading) if reading is not None else None
     if state.prediction is None:
@@ -400,8 +411,9 @@ def control_cycle(
     requested_v = design.tracker_input(
         position, estimate, pace, (reference, reference_input_v)
     )
+    lateness = watch_lateness(design.guard, state.lateness, lateness_ns)
     if design.guard is not None:
-        capped_v = guarded_voltage(design.guard, estimate, requested_v)
+        capped_v = guarded_voltage(design.guard, estimate, requested_v, lateness.worst_ns)
     else:
         limit = design.voltage_limit_v
         capped_v = min(max(requested_v, -limit), limit)
@@ -426,7 +438,7 @@ def control_cycle(
             cycle=state.cycle + 1, prediction=prediction, path_position=position + pace + resync,
             fit=fit, ball_gain_ratio=ratio, pace=pace, deadzone_v=deadzone_v,
             deadzone_window=window, noise_mean_square=noise_mean_square,
-            last_positions=last_positions,
+            last_positions=last_positions, lateness=lateness,
         ),
         CycleOutput(
             voltage_v, requested_v, estimate, reading is not None, reference, reference_input_v
@@ -471,7 +483,7 @@ def coast_cycles(
         ball_gain_ratio=state.ball_gain_ratio, pace=state.pace, deadzone_v=state.deadzone_v,
         # Skipped periods measured nothing: the noise's chain of positions and the dead-zone
         # window (which needs the angle at both ends) start again.
-        noise_mean_square=state.noise_mean_square,
+        noise_mean_square=state.noise_mean_square, lateness=state.lateness,
     )
 
 

@@ -39,6 +39,14 @@ BISECTION_STEPS = 40
 STOPPING_TABLE_STEP_RAD_S = 0.01  # interpolation error ≤ step²/(8·α·V_brake) ≈ 2e-8 rad
 STOPPING_TABLE_SLEW_MULTIPLE = 3.0  # the table covers 3× the motor's top speed
 ALLOWED_RATE_POINTS = 256  # ω_a(gap) over gaps 0..2·θ_s
+# Real time: the look-aheads beyond the design's latency allowance the hard barrier can take on
+# when the loop runs later than that allowance [ns]; a lateness between two steps takes the
+# longer one (never less look-ahead than measured).
+LATENESS_STEPS_NS = (250_000, 500_000, 1_000_000, 2_000_000, 4_000_000, 8_000_000,
+                     16_000_000, 32_000_000)
+# What a cycle's computation adds to its start lateness before its command is out [ns]
+# (measured: 40–200 µs a cycle).
+COMPUTE_ALLOWANCE_NS = 250_000
 
 
 
@@ -77,6 +85,67 @@ class AngleGuard:
     stopping_rad: tuple[float, ...]
     beyond_slope_s: float
     soft: SoftCap | None = None
+    # Real time: the look-ahead follows the lateness the loop measures (see LatenessWatch).
+    # ``lateness_steps``: (extra look-ahead [ns], then the servo's response over it: θ per θ̇,
+    # θ per volt, θ̇ per θ̇, θ̇ per volt); empty: off (offline, lock-step, older logs).
+    lateness_steps: tuple[tuple[float, float, float, float, float], ...] = ()
+    lateness_allowance_ns: int = 0  # what the design's look-ahead already covers
+    lateness_hold_cycles: int = 0  # how long a measured lateness is kept as the worst
+
+
+@dataclass(frozen=True)
+class LatenessWatch:
+    """The worst recent lateness of the loop [ns]: each cycle's start lateness plus the periods
+    it skipped (what the previous command was held beyond its period), kept for
+    ``lateness_hold_cycles`` cycles after it was measured, then replaced by the current one.
+    Pure: a replay computes the same from the log's /timing."""
+
+    worst_ns: int = 0
+    age_cycles: int = 0
+
+
+NO_LATENESS = LatenessWatch()
+
+
+def watch_lateness(
+    guard: AngleGuard | None, watch: LatenessWatch, lateness_ns: int
+) -> LatenessWatch:
+    """``watch`` after a cycle that started ``lateness_ns`` late (skipped periods included)."""
+    if guard is None or not guard.lateness_steps:
+        return watch
+    if lateness_ns >= watch.worst_ns or watch.age_cycles >= guard.lateness_hold_cycles:
+        return LatenessWatch(lateness_ns, 0)
+    return LatenessWatch(watch.worst_ns, watch.age_cycles + 1)
+
+
+def lateness_step(
+    guard: AngleGuard, worst_ns: int
+) -> tuple[float, float, float, float, float] | None:
+    """The look-ahead step for a worst lateness: None while the design's allowance covers it."""
+    extra_ns = worst_ns + COMPUTE_ALLOWANCE_NS - guard.lateness_allowance_ns
+    if extra_ns <= 0 or not guard.lateness_steps:
+        return None
+    for step in guard.lateness_steps:
+        if step[0] >= extra_ns:
+            return step
+    return guard.lateness_steps[-1]
+
+
+def make_lateness_steps(
+    alpha: float, alpha_beta: float
+) -> tuple[tuple[float, float, float, float, float], ...]:
+    """The servo's exact response over each extra look-ahead e, with the voltage held:
+    θ̇(e) = c·θ̇ + d·u, θ(e) = θ + a·θ̇ + b·u, with c = e^(−αβe), a = (1 − c)/αβ,
+    d = (α/αβ)(1 − c), b = (α/αβ)(e − a). Computed here, once: the cycle uses no libm."""
+    steps = []
+    speed_per_v = alpha / alpha_beta
+    for extra_ns in LATENESS_STEPS_NS:
+        extra_s = extra_ns * 1e-9
+        decay = math.exp(-alpha_beta * extra_s)
+        a = (1.0 - decay) / alpha_beta
+        steps.append((float(extra_ns), a, speed_per_v * (extra_s - a), decay,
+                      speed_per_v * (1.0 - decay)))
+    return tuple(steps)
 
 
 def exact_stopping_distance_rad(
@@ -102,8 +171,12 @@ def make_angle_guard(
     Ad: np.ndarray,
     Bd: np.ndarray,
     soft: SoftCap | None = None,
+    lateness_allowance_ns: int = 0,
+    lateness_hold_cycles: int = 0,
 ) -> AngleGuard:
-    """The guard for a motor model (α, αβ), a braking voltage and a look-ahead (Ad, Bd)."""
+    """The guard for a motor model (α, αβ), a braking voltage and a look-ahead (Ad, Bd);
+    ``lateness_hold_cycles`` > 0: the look-ahead follows the measured lateness beyond
+    ``lateness_allowance_ns`` (real time)."""
     top_rate = STOPPING_TABLE_SLEW_MULTIPLE * voltage_limit_v * alpha / alpha_beta
     count = math.ceil(top_rate / STOPPING_TABLE_STEP_RAD_S) + 1
     rates = np.arange(count) * STOPPING_TABLE_STEP_RAD_S
@@ -119,6 +192,9 @@ def make_angle_guard(
         stopping_rad=tuple(table.tolist()),
         beyond_slope_s=1.0 / alpha_beta,
         soft=soft,
+        lateness_steps=make_lateness_steps(alpha, alpha_beta) if lateness_hold_cycles else (),
+        lateness_allowance_ns=lateness_allowance_ns if lateness_hold_cycles else 0,
+        lateness_hold_cycles=lateness_hold_cycles,
     )
 
 
@@ -203,8 +279,12 @@ def stopping_distance_rad(guard: AngleGuard, rate_rad_s: float) -> float:
     return table[index] + fraction * (table[index + 1] - table[index])
 
 
-def guarded_voltage(guard: AngleGuard, estimate: Row4, requested_v: float) -> float:
-    """``requested_v`` clamped to ±V, to the soft cap and to the hard barrier's safe interval."""
+def guarded_voltage(
+    guard: AngleGuard, estimate: Row4, requested_v: float, worst_lateness_ns: int = 0
+) -> float:
+    """``requested_v`` clamped to ±V, to the soft cap and to the hard barrier's safe interval.
+    ``worst_lateness_ns`` (real time, LatenessWatch): a loop later than the design allowed for
+    holds each command longer; the barrier then looks that much further ahead."""
     x0, x1, x2, x3 = estimate
     limit = guard.voltage_limit_v
     voltage = min(max(requested_v, -limit), limit)
@@ -220,6 +300,11 @@ def guarded_voltage(guard: AngleGuard, estimate: Row4, requested_v: float) -> fl
     rate_free = r0 * x0 + r1 * x1 + r2 * x2 + r3 * x3
     theta_per_v = guard.theta_per_v
     rate_per_v = guard.rate_per_v
+    step = lateness_step(guard, worst_lateness_ns) if guard.lateness_steps else None
+    if step is not None:  # the servo runs on, the voltage held, for the extra time
+        _, a, b, c, d = step
+        theta_free, rate_free = theta_free + a * rate_free, c * rate_free
+        theta_per_v, rate_per_v = theta_per_v + a * rate_per_v + b, c * rate_per_v + d
 
     def margin(input_v: float, sign: float) -> float:
         """Distance left to the limit (side ``sign``) after one period at ``input_v``."""

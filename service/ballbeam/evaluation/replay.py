@@ -78,6 +78,7 @@ def verify(run_log: RunLog) -> VerifyResult:
     design, source, difference = _designs(run_log, config)
     state = ControllerState()
     held_v = 0.0
+    period_ns = round(design.period_s * 1e9)
     for index in range(count):
         skipped = int(timing["skipped"][index])
         if skipped:
@@ -93,7 +94,8 @@ def verify(run_log: RunLog) -> VerifyResult:
                 reading = SensorReading(
                     int(sensor["angle_counts"][index]), int(sensor["position_counts"][index])
                 )
-            state, output = control_cycle(design, state, reading)
+            lateness_ns = int(timing["lateness_ns"][index]) + skipped * period_ns
+            state, output = control_cycle(design, state, reading, lateness_ns)
             replayed_v = output.voltage_v
         if replayed_v != recorded_v or state.cycle - 1 != int(command["cycle"][index]):
             mismatch = Mismatch(index, int(command["cycle"][index]), recorded_v, replayed_v)

@@ -35,7 +35,11 @@ rest_*                               present with rest gains: gain (4,), far_gai
 guard_*                              present when the angle guard is on: theta_limit_rad,
                                      voltage_limit_v, theta_per_v, rate_per_v,
                                      rate_step_rad_s, beyond_slope_s (scalars),
-                                     theta_row, rate_row (4,), stopping_rad (M,)
+                                     theta_row, rate_row (4,), stopping_rad (M,);
+                                     real time, when the look-ahead follows the measured
+                                     lateness (absent in older logs: it does not):
+                                     lateness_steps (S, 5), lateness_allowance_ns and
+                                     lateness_hold_cycles (scalars)
 adapt_*                              present with the ball-gain adaptation: design_gamma,
                                      position_noise_m, confidence, min_ratio, max_ratio,
                                      period_s, until_cycle, back_emf_v_s_per_rad,
@@ -60,6 +64,7 @@ from __future__ import annotations
 
 import io
 import zipfile
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -143,6 +148,10 @@ def encode_design(design: ControllerDesign) -> bytes:
         arrays["guard_theta_row"] = _f8(guard.theta_row)
         arrays["guard_rate_row"] = _f8(guard.rate_row)
         arrays["guard_stopping_rad"] = _f8(guard.stopping_rad)
+        if guard.lateness_steps:
+            arrays["guard_lateness_steps"] = _f8(guard.lateness_steps)
+            arrays["guard_lateness_allowance_ns"] = _f8(guard.lateness_allowance_ns)
+            arrays["guard_lateness_hold_cycles"] = _f8(guard.lateness_hold_cycles)
         if guard.soft is not None:
             soft = guard.soft
             arrays.update({f"soft_{name}": _f8(getattr(soft, name)) for name in _SOFT_SCALARS})
@@ -170,12 +179,16 @@ def decode_design(data: bytes, where: str) -> ControllerDesign:
                     **{name: _scalar(arrays[f"soft_{name}"]) for name in _SOFT_SCALARS},
                     allowed_rate_rad_s=_table(arrays["soft_allowed_rate_rad_s"], "soft"),
                 )
+            scalars: dict[str, Any] = {
+                name: _scalar(arrays[f"guard_{name}"]) for name in _GUARD_SCALARS
+            }
             guard = AngleGuard(
-                **{name: _scalar(arrays[f"guard_{name}"]) for name in _GUARD_SCALARS},
+                **scalars,
                 theta_row=_four(arrays["guard_theta_row"]),
                 rate_row=_four(arrays["guard_rate_row"]),
                 stopping_rad=_table(arrays["guard_stopping_rad"], "guard"),
                 soft=soft,
+                **_lateness_fields(arrays),
             )
         observer = ObserverLaw.from_arrays(
             arrays["observer_Ad"], arrays["observer_Bd"], arrays["observer_C"],
@@ -321,6 +334,20 @@ def _scalar(array: np.ndarray) -> float:
     if array.shape != ():
         raise ValueError(f"expected a scalar, got shape {array.shape}")
     return float(array)
+
+
+def _lateness_fields(arrays: Mapping[str, np.ndarray]) -> dict[str, Any]:
+    """The guard's lateness look-ahead, where the log has one (none before it existed)."""
+    if "guard_lateness_steps" not in arrays:
+        return {}
+    steps = arrays["guard_lateness_steps"]
+    if steps.ndim != 2 or steps.shape[1] != 5 or not np.isfinite(steps).all():
+        raise ValueError("the guard's lateness steps must be (S, 5) finite numbers")
+    return {
+        "lateness_steps": tuple(tuple(float(v) for v in row) for row in steps),
+        "lateness_allowance_ns": _count(arrays["guard_lateness_allowance_ns"]),
+        "lateness_hold_cycles": _count(arrays["guard_lateness_hold_cycles"]),
+    }
 
 
 def _count(array: np.ndarray) -> int:

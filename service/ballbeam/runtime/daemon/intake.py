@@ -137,6 +137,7 @@ class SensorIntake:
         sent: SentCommands | None = None,
         sample_period_s: float = 1e-3,
         auth: FrameAuthenticator | None = None,
+        late_sample_periods: int | None = None,
     ) -> None:
         self.contract = contract
         self.recording = recording
@@ -154,13 +155,36 @@ class SensorIntake:
         # The plant's clock: its truth counters (one per sample period) unwrapped.
         self.plant_clock = CounterUnwrap()
         self.sample_period_s = sample_period_s
+        self.sample_period_ns = round(sample_period_s * 1e9)
         # (counter, log time) of the latest accepted sample: its truth is logged at that time.
         self._last_sample_log: tuple[int, int] | None = None
+        # Real time: a sample this many plant periods older than the freshest seen is no
+        # measurement of now (see take); None: every sample counts.
+        self.late_sample_periods = late_sample_periods
+        self.sample_clock = CounterUnwrap()
+        self._latest_index = 0
+        self._freshest_offset_ns: int | None = None
+        self.late_samples = 0
 
-    def take(self) -> SensorFrame | None:
-        """The latest sample if no cycle has used it yet."""
+    def take(self, now_ns: int = 0) -> SensorFrame | None:
+        """The latest sample if no cycle has used it yet, and it is not late.
+
+        The plant samples its period ``i`` at its own ``origin + i·period``; ``now_ns − i·period``
+        is then that origin plus the sample's age now. Its smallest value so far is the
+        freshest a sample has ever been (the bus's own delay); a sample older than that by
+        ``late_sample_periods`` periods is late. A starved daemon reads its socket behind the
+        stream (samples 29 ms old were read, and taken for now, while the servo ran to 53.6°);
+        such a sample is history, and the cycle coasts on the model instead (counted)."""
         sample = self.latest if self.fresh else None
         self.fresh = False
+        if sample is None or self.late_sample_periods is None:
+            return sample
+        offset_ns = now_ns - self._latest_index * self.sample_period_ns
+        if self._freshest_offset_ns is None or offset_ns < self._freshest_offset_ns:
+            self._freshest_offset_ns = offset_ns
+        if offset_ns - self._freshest_offset_ns >= self.late_sample_periods * self.sample_period_ns:
+            self.late_samples += 1
+            return None
         return sample
 
     def reject(self, reason: str, detail: str, log_time_ns: int, cycle: int) -> None:
@@ -216,6 +240,7 @@ class SensorIntake:
             verdict = self.sensor_check.classify(frame.counter)
             if verdict == "ok":
                 self.latest = frame
+                self._latest_index = self.sample_clock.index(frame.counter)
                 self.fresh = True
                 self._last_sample_log = (frame.counter, log_time_ns)
             elif verdict == "stale":

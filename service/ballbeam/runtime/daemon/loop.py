@@ -45,7 +45,7 @@ from ballbeam.runtime.daemon.command_out import CommandOut
 from ballbeam.runtime.daemon.intake import SensorIntake, SentCommands
 from ballbeam.runtime.peer_link import signal_run_over
 from ballbeam.runtime.stop import StopFlag
-from ballbeam.runtime.ticker import Ticker
+from ballbeam.runtime.ticker import Ticker, spin_ns_for_this_process
 
 log = logging.getLogger("ballbeam.daemon")
 
@@ -59,6 +59,10 @@ SECOND_WRITER_FRAMES_CLASSIC = 3
 # After the run, how long to listen for the emulator's final counters (it sends them within a
 # sensor period or two of hearing that the run is over).
 FINAL_STATUS_WAIT_S = 0.5
+# Real time: a sample two control periods older than the freshest one was is not a measurement
+# of now (a starved daemon reading its socket behind the stream); up to a period older is the
+# loop's ordinary jitter (SensorIntake.take).
+LATE_SAMPLE_CYCLES = 2
 
 
 class PlantLostError(BallbeamError, TimeoutError):
@@ -70,6 +74,7 @@ class DaemonStats:
     cycles: int = 0
     measured_cycles: int = 0
     coasted_cycles: int = 0
+    late_samples: int = 0  # real time: samples read too late to be taken for now (coasted)
     fault_cycles: int = 0
     overruns: int = 0
     skipped_periods: int = 0
@@ -121,7 +126,13 @@ class ControllerDaemon:
         sample_period_s = 1.0 / config.plant.sensor_rate_hz * (
             sensor_periods_per_cycle(config) if config.run.mode == "lockstep" else 1
         )
-        self.intake = SensorIntake(contract, recording, sent, sample_period_s, auth)
+        realtime = config.run.mode == "realtime"
+        self.intake = SensorIntake(
+            contract, recording, sent, sample_period_s, auth,
+            late_sample_periods=(
+                LATE_SAMPLE_CYCLES * sensor_periods_per_cycle(config) if realtime else None
+            ),
+        )
         self.commands = CommandOut(bus, contract, recording, sent, auth)
         self.second_writer_limit = (
             SECOND_WRITER_FRAMES_AUTHENTICATED if auth is not None
@@ -145,6 +156,7 @@ class ControllerDaemon:
         """The run's counts so far (the intake's and the command side's included)."""
         self._stats.own_frames = self.intake.own_frames
         self._stats.rejected = self.intake.rejected
+        self._stats.late_samples = self.intake.late_samples
         self._stats.command_resends = self.commands.resends
         self._stats.second_writer_frames = self.intake.second_writer_frames
         self._stats.plant_status_snapshots = self.intake.plant_status.snapshots
@@ -193,7 +205,7 @@ class ControllerDaemon:
         self.recording.fault(self.log_time_ns, self.state.cycle, kind, detail)
 
     # -- one cycle ----------------------------------------------------------------------------
-    def _cycle(self) -> None:
+    def _cycle(self, lateness_ns: int = 0) -> None:
         recorder_error = self.recording.recorder.error
         if recorder_error is not None and not self.stop.is_set():
             # No run goes on unrecorded: this cycle still commands, then the loop stops at 0 V.
@@ -201,7 +213,7 @@ class ControllerDaemon:
             self._stats.end_reason = "recorder_failed"
             self.stop.set("recorder_failed")
         cycle = self.state.cycle
-        sample = self.intake.take()
+        sample = self.intake.take(time.monotonic_ns())
         reading = None
         if sample is None:
             self.cycles_since_sensor += 1
@@ -216,7 +228,7 @@ class ControllerDaemon:
             self.in_fault = False
             self._event("sensor_frames_resumed", f"after {timeout}+ silent periods")
         self._record_sensor(cycle, reading)
-        self.state, output = control_cycle(self.design, self.state, reading)
+        self.state, output = control_cycle(self.design, self.state, reading, lateness_ns)
         self.last_output = output
         self._stats.cycles += 1
         if reading is None:
@@ -372,8 +384,8 @@ class ControllerDaemon:
             start_after_ns - start_after_ns % self.period_ns + phase_ns
             + self.config.controller.phase_offset_us * 1000
         )
-        ticker = Ticker(self.period_ns, spin_ns=self.config.controller.spin_us * 1000,
-                        start_ns=origin_ns)
+        spin_ns = spin_ns_for_this_process(self.config.controller.spin_us)
+        ticker = Ticker(self.period_ns, spin_ns=spin_ns, start_ns=origin_ns)
         self.mono_origin_ns, self.wall_origin_ns = origin_ns, self._wall_ns_at(origin_ns)
         while not self.stop.is_set() and self.state.cycle < self.n_cycles:
             tick = ticker.wait()
@@ -391,7 +403,9 @@ class ControllerDaemon:
                     break
             if self._stats.end_reason == "second_writer":
                 break  # no further drive: the shutdown commands 0 V now
-            self._cycle()
+            # The angle guard looks as far ahead as the loop has lately been late (replayed
+            # from /timing: the same sum of its lateness and skipped periods).
+            self._cycle(tick.lateness_ns + tick.skipped * self.period_ns)
             self._record_timing(tick.deadline_ns, tick.start_ns, tick.skipped)
 
     def _await_final_status(self) -> None:

@@ -30,7 +30,7 @@ from ballbeam.runtime.process import (
     settle_heap,
 )
 from ballbeam.runtime.stop import StopFlag
-from ballbeam.runtime.ticker import worst_lateness_ns
+from ballbeam.runtime.ticker import spin_ns_for_this_process, worst_lateness_ns
 
 if TYPE_CHECKING:
     from ballbeam.runtime.live import LiveView
@@ -56,7 +56,8 @@ def with_measured_latency(config: Config) -> tuple[Config, dict[str, str]]:
     if controller.lateness_probe_s <= 0:
         return config, {}
     worst_ns = worst_lateness_ns(
-        controller.period_ns, controller.lateness_probe_s, controller.spin_us * 1000
+        controller.period_ns, controller.lateness_probe_s,
+        spin_ns_for_this_process(controller.spin_us),
     )
     # The assumed allowance already covers a command landing up to that late; beyond it, the
     # worst lateness seen plus the period the command then acts for.
@@ -117,7 +118,10 @@ def _run_recorded(
     scheduling: dict[str, str] = {}
     if config.run.mode == "realtime":
         sys.setswitchinterval(REALTIME_SWITCH_INTERVAL_S)
-        scheduling = apply_scheduling(config.controller.cpu, config.controller.realtime_priority)
+        controller = config.controller
+        scheduling = apply_scheduling(
+            controller.cpu, controller.realtime_priority, controller.fair_slice_us
+        )
         assumed_us = config.controller.theta_guard_latency_us
         config, probe = with_measured_latency(config)
         scheduling.update(probe)
