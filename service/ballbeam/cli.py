@@ -213,7 +213,10 @@ def command_run(args: argparse.Namespace) -> int:
             f"ballbeam: the run ended with {end_reason}"
             + (f" and |θ| reached {summary.get('max_abs_theta_deg')}° (bound "
                f"{result.config.limits.theta_deg}°)" if bound_broken else "")
-            + f": exit {code} (log: {result.log_path})",
+            + f": exit {code} (log: {result.log_path})"
+            + (f"; {summary['late_samples']} sensor samples were read too late to use: the "
+               "daemon was short of CPU (README: real-time scheduling)"
+               if end_reason == "plant_lost" and summary.get("late_samples") else ""),
             file=sys.stderr,
         )
     return code
