@@ -33,7 +33,9 @@ FLOOD = REPO / "tests" / "helpers" / "flood.py"
 PAPER = REPO / "configs" / "paper.toml"
 
 
-def one_run(mode: str, attacked: bool, seed: int, log_dir: Path) -> dict[str, Any]:
+def one_run(
+    mode: str, attacked: bool, seed: int, log_dir: Path, keep: bool = False
+) -> dict[str, Any]:
     group, port = isolated_group(DEFAULT_BUS_GROUP), free_udp_port()
     overrides = [f"run.mode='{mode}'", "run.duration_s=4.0", "bus.isolate_runs=false",
                  f"bus.channel='{group}'", f"bus.port={port}", f"run.log_dir='{log_dir}'"]
@@ -58,6 +60,7 @@ def one_run(mode: str, attacked: bool, seed: int, log_dir: Path) -> dict[str, An
     meta = dict(log.metadata.get("summary", {}))
     row: dict[str, Any] = {
         "attacked": attacked,
+        "late_samples": summary.get("late_samples"),
         "daemon_exit": result.daemon_exit,
         "end_reason": summary["end_reason"],
         "rest_time_s": summary["rest_time_s"],
@@ -77,7 +80,10 @@ def one_run(mode: str, attacked: bool, seed: int, log_dir: Path) -> dict[str, An
         flood_report = json.loads(out) if out.strip() else {}
         row["flood_sent"] = flood_report.get("sent")
         row["flood_elapsed_s"] = flood_report.get("elapsed_s")
-    result.log_path.unlink()
+    if keep:
+        row["log_path"] = str(result.log_path)
+    else:
+        result.log_path.unlink()
     return row
 
 
@@ -85,12 +91,15 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--mode", choices=("realtime", "lockstep"), default="realtime")
     parser.add_argument("--pairs", type=int, default=3)
+    parser.add_argument("--log-dir", type=Path, help="keep the runs' logs here (default: a "
+                        "temporary directory, removed at the end)")
     args = parser.parse_args()
     rows = []
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as tmp_dir:
+        tmp = args.log_dir or tmp_dir
         for pair in range(args.pairs):
             for attacked in (False, True):
-                row = one_run(args.mode, attacked, 100 + pair, Path(tmp))
+                row = one_run(args.mode, attacked, 100 + pair, Path(tmp), args.log_dir is not None)
                 print(json.dumps(row), flush=True)
                 rows.append(row)
     clean = [r["rest_time_s"] for r in rows if not r["attacked"]]

@@ -261,6 +261,11 @@ def _rest_gains(config: Config, model: LinearModel, from_cycle: int) -> RestGain
         position_far_m=tracker_cfg.rest_position_far_m,
         firm_gain=firm_gain,
         firm_cycles=max(round(tracker_cfg.rest_firm_s / period_s), 1),
+        catch_gain=(
+            (tracker_cfg.rest_catch_theta_v_per_rad, tracker_cfg.rest_catch_rate_v_s_per_rad)
+            if tracker_cfg.rest_catch_s > 0 else None
+        ),
+        catch_cycles=max(round(tracker_cfg.rest_catch_s / period_s), 1),
     )
 
 

@@ -136,6 +136,17 @@ class TrackerSection(_Section):
         3.0, ge=0, le=60, description="how long the firmer rest gains take to fade [s] "
         "(0: rest_r's from the plan's end)"
     )
+    rest_catch_s: float = Field(
+        0.06, ge=0, le=10, description="right after the plan, a servo catch (a PD term on θ) "
+        "fading to nothing over this long [s]: the plan's last brake leaves the servo a little "
+        "off and moving, and it crept past the rest band (0: none)"
+    )
+    rest_catch_theta_v_per_rad: float = Field(
+        80.0, ge=0, le=1000, description="the catch's gain on θ [V/rad]"
+    )
+    rest_catch_rate_v_s_per_rad: float = Field(
+        1.0, ge=0, le=100, description="the catch's gain on θ̇ [V·s/rad]"
+    )
     far_q: tuple[float, ...] | None = Field(
         (10.0, 0.0, 0.0, 50000.0),
         description="after the plan, Q of the gains far from rest (None: the tracking q)",

@@ -75,6 +75,11 @@ class RestGains:
     into it over ``firm_cycles``: a ball that arrives drifting ~1 mm/s is caught (the gentle
     gains' demand for it stays inside the command band, and it rolls out of the rest band);
     once it has settled the gentle gains hold it without dither.
+    ``catch_gain``: (V per rad of θ, V per rad/s of θ̇), added to whatever gains act at
+    ``from_cycle`` and fading to nothing over ``catch_cycles``: the plan ends with a full-voltage
+    brake whose last cycle leaves the servo a few tenths of a degree and 0.1–0.4 rad/s off;
+    with demands that small inside the dead zone it crept past the 0.5° rest band in one noise
+    draw of ten and took 60 ms to come back (rest at 1.84 s instead of 1.78 s).
     """
 
     gain: Row4
@@ -87,6 +92,15 @@ class RestGains:
     position_far_m: float
     firm_gain: Row4 | None = None  # the rest gains right after the plan (None: ``gain`` alone)
     firm_cycles: int = 1  # ... fading into ``gain`` over this many cycles
+    catch_gain: tuple[float, float] | None = None  # (θ, θ̇) terms right after the plan
+    catch_cycles: int = 1  # ... fading to nothing over this many cycles
+
+    def catch_terms(self, cycle: int) -> tuple[float, float]:
+        """The catch's θ and θ̇ gains at ``cycle`` (0, 0 outside its window)."""
+        h = 1.0 - (cycle - self.from_cycle) / self.catch_cycles
+        if self.catch_gain is None or h <= 0.0 or cycle < self.from_cycle:
+            return 0.0, 0.0
+        return h * self.catch_gain[0], h * self.catch_gain[1]
 
     def rest_row(self, cycle: int) -> Row4:
         """The rest gains at ``cycle``: firm right after the plan, fading into the gentle ones."""
@@ -248,6 +262,9 @@ class ControllerDesign:
             k0, k1, k2, k3 = r0 + w * (k0 - r0), r1 + w * (k1 - r1), r2 + w * (k2 - r2), (
                 r3 + w * (k3 - r3)
             )
+            if rest.catch_gain is not None:
+                catch_theta, catch_rate = rest.catch_terms(cycle)
+                k0, k1 = k0 + catch_theta, k1 + catch_rate
         demand = offset - (k0 * x0 + k1 * x1 + k2 * x2 + k3 * x3)
         if pace == 1.0 or cycle >= self.n_steps or self.adaptation is None:
             return demand

@@ -29,6 +29,7 @@ rest_from_cycle            ()        the plan's end (cycle): rest observer and g
 rest_observer_L            (4, 2)    present with a rest filter: its Kalman gain
 rest_*                               present with rest gains: gain (4,), far_gain (4,)
                                      (optional), firm_gain (4,) and firm_cycles ()
+                                     (optional), catch_gain (2,) and catch_cycles ()
                                      (optional), from_cycle, blend_cycles,
                                      theta_near_rad, theta_far_rad, position_near_m,
                                      position_far_m (scalars)
@@ -124,6 +125,9 @@ def encode_design(design: ControllerDesign) -> bytes:
         if rest.firm_gain is not None:
             arrays["rest_firm_gain"] = _f8(rest.firm_gain)
             arrays["rest_firm_cycles"] = _f8(rest.firm_cycles)
+        if rest.catch_gain is not None:
+            arrays["rest_catch_gain"] = _f8(rest.catch_gain)
+            arrays["rest_catch_cycles"] = _f8(rest.catch_cycles)
     adaptation = design.adaptation
     if adaptation is not None:
         arrays.update({
@@ -215,6 +219,12 @@ def decode_design(data: bytes, where: str) -> ControllerDesign:
                 firm_cycles=(
                     max(_count(arrays["rest_firm_cycles"]), 1)
                     if "rest_firm_cycles" in arrays else 1
+                ),
+                # Logs from before the servo catch have neither array.
+                catch_gain=_two(arrays["rest_catch_gain"]) if "rest_catch_gain" in arrays else None,
+                catch_cycles=(
+                    max(_count(arrays["rest_catch_cycles"]), 1)
+                    if "rest_catch_cycles" in arrays else 1
                 ),
             )
         adaptation = None
@@ -361,6 +371,12 @@ def _table(array: np.ndarray, what: str) -> tuple[float, ...]:
     if array.ndim != 1 or array.size < 2:
         raise ValueError(f"the {what} table must have 2 or more entries")
     return tuple(array.tolist())
+
+
+def _two(array: np.ndarray) -> tuple[float, float]:
+    if array.shape != (2,) or not np.isfinite(array).all():
+        raise ValueError(f"expected 2 finite values, got shape {array.shape}")
+    return float(array[0]), float(array[1])
 
 
 def _four(array: np.ndarray) -> Row4:
