@@ -179,13 +179,21 @@ class SensorIntake:
         self.fresh = False
         if sample is None or self.late_sample_periods is None:
             return sample
-        offset_ns = now_ns - self._latest_index * self.sample_period_ns
-        if self._freshest_offset_ns is None or offset_ns < self._freshest_offset_ns:
-            self._freshest_offset_ns = offset_ns
-        if offset_ns - self._freshest_offset_ns >= self.late_sample_periods * self.sample_period_ns:
+        if self.behind(now_ns):
             self.late_samples += 1
             return None
         return sample
+
+    def behind(self, now_ns: int) -> bool:
+        """Real time: is the latest sample late at ``now_ns`` (see :meth:`take`)? False before
+        any sample, and in lock-step."""
+        if self.latest is None or self.late_sample_periods is None:
+            return False
+        offset_ns = now_ns - self._latest_index * self.sample_period_ns
+        if self._freshest_offset_ns is None or offset_ns < self._freshest_offset_ns:
+            self._freshest_offset_ns = offset_ns
+        return (offset_ns - self._freshest_offset_ns
+                >= self.late_sample_periods * self.sample_period_ns)
 
     def reject(self, reason: str, detail: str, log_time_ns: int, cycle: int) -> None:
         self.rejected[reason] += 1

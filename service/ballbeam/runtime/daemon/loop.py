@@ -63,6 +63,9 @@ FINAL_STATUS_WAIT_S = 0.5
 # of now (a starved daemon reading its socket behind the stream); up to a period older is the
 # loop's ordinary jitter (SensorIntake.take).
 LATE_SAMPLE_CYCLES = 2
+# A cycle reads its socket for half a period at most, so that a flood cannot hold the loop; a
+# daemon behind the stream reads on up to this share of the period [%] to catch up.
+CATCH_UP_SHARE = 80
 
 
 class PlantLostError(BallbeamError, TimeoutError):
@@ -404,9 +407,14 @@ class ControllerDaemon:
             # Read what has arrived, for half a period at most: a flood must not hold the loop
             # (the rest is read next cycle, or dropped by the kernel if its buffer overflows).
             drain_until_ns = tick.start_ns + self.period_ns // 2
+            catch_up_until_ns = tick.start_ns + self.period_ns * CATCH_UP_SHARE // 100
             while (message := self._recv(0.0)) is not None:
                 self._handle(message)
-                if time.monotonic_ns() >= drain_until_ns:
+                if (now_ns := time.monotonic_ns()) >= drain_until_ns and (
+                    # Behind the stream (after a stall, or under a flood): read on, to the
+                    # present if the period allows, rather than take history for now.
+                    now_ns >= catch_up_until_ns or not self.intake.behind(now_ns)
+                ):
                     break
             if self._stats.end_reason == "second_writer":
                 break  # no further drive: the shutdown commands 0 V now
