@@ -16,6 +16,7 @@ from ballbeam.errors import BallbeamError, BusError
 from ballbeam.protocol.frames import FrameContract
 from ballbeam.protocol.secoc import FrameAuthenticator
 from ballbeam.runtime.bus import open_bus
+from ballbeam.runtime.owner_lock import EMULATOR_SLOT, OwnerLock
 from ballbeam.runtime.peer_link import PeerLink
 from ballbeam.runtime.process import (
     add_config_arguments,
@@ -51,6 +52,9 @@ def run_emulator(config: Config, secret: bytes | None = None) -> None:
             config.plant.cpu, config.plant.realtime_priority, config.plant.fair_slice_us
         )
     peer_link = PeerLink.from_environment()
+    own_lock = OwnerLock.from_environment(slot=EMULATOR_SLOT)  # held till death: for the daemon
+    if own_lock is not None:
+        own_lock.hold()
     bus = open_bus(config.bus)
     emulator = PlantEmulator(config, bus, contract, peer_link, auth)
     settle_heap()

@@ -257,6 +257,11 @@ class ControllerSection(_Section):
     sensor_timeout_periods: int = Field(
         3, ge=1, le=10000, description="periods without a sensor frame before a fault (0 V)"
     )
+    sensor_timeout_alive_periods: int = Field(
+        10, ge=1, le=10000, description="with `ballbeam run`'s link showing the emulator alive "
+        "(its samples late, e.g. starved of CPU): periods coasted on the model before 0 V; a "
+        "dead emulator gets 0 V at the first silent period"
+    )
     plant_lost_s: float = Field(
         0.5,
         gt=0,

@@ -111,6 +111,35 @@ def test_emulator_killed_realtime_daemon_faults_to_0v_and_finishes_its_file(
 
 
 @pytest.mark.bus
+def test_with_the_launchers_link_a_killed_emulator_gets_0v_at_the_first_silent_period(
+    tmp_path: Path,
+) -> None:
+    """`ballbeam run`'s link also carries a robust mutex the emulator holds
+    (runtime/owner_lock.py): the daemon, finding no sample, tries it, and a dead emulator is
+    not waited for (0 V from the first silent cycle on), where a live one whose samples are
+    late is coasted over for ``sensor_timeout_alive_periods``."""
+    with Bench(tmp_path, "realtime", 3.0, peer_link=True) as bench:
+        bench.wait_cycling()
+        time.sleep(random.Random(5).uniform(0.4, 1.0))
+        bench.emulator.kill()
+        bench.emulator.wait()
+        daemon_exit = bench.wait_daemon(START_TIMEOUT_S)
+        daemon_stderr = bench.stderr(bench.daemon)
+    assert daemon_exit == EXIT_PLANT_LOST, daemon_stderr[-2000:]
+    log = read_log(bench.log_path)
+    fault_cycle = int(faults(log, "sensor_timeout")[-1]["cycle"])
+    last_fresh = _last_fresh_cycle(log, fault_cycle)
+    executed = log.topics["/timing"].values["cycle"]
+    # The first executed cycle after the last sample (one period, if on time) is the fault.
+    assert fault_cycle == int(executed[executed > last_fresh][0]), (last_fresh, fault_cycle)
+    command = log.topics["/command"].values
+    after = command["cycle"] >= fault_cycle
+    assert (command["enable"][after] == 0).all() and (command["voltage_v"][after] == 0.0).all()
+    assert verify(log).ok
+    figure("emulator_kill_linked", {"detection_periods": fault_cycle - last_fresh})
+
+
+@pytest.mark.bus
 def test_emulator_killed_lockstep_daemon_stops_on_silence_and_finishes_its_file(
     tmp_path: Path,
 ) -> None:

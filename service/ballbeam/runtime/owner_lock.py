@@ -13,6 +13,9 @@ which fails while the daemon lives and succeeds ("owner died") once it is dead. 
 in a memfd the launcher creates and initialises, then hands to both processes (``pass_fds``;
 ``BALLBEAM_PEER_LOCK_FD``). A word next to it says the daemon has taken the lock, so that the
 emulator, which starts first, never takes a lock nobody holds yet for a death.
+The emulator holds a second mutex the same way, which the daemon tries when sensor samples stop
+coming: a live emulator that missed a few periods (starved of CPU on a loaded machine) is
+coasted over for longer before the drive is zeroed, a dead one is not waited for at all.
 glibc on Linux only; elsewhere :func:`create_owner_lock` returns None and the pipe does it all.
 """
 
@@ -28,9 +31,13 @@ log = logging.getLogger("ballbeam")
 
 PEER_LOCK_ENV = "BALLBEAM_PEER_LOCK_FD"
 _REGION_BYTES = mmap.PAGESIZE
-_MUTEX_OFFSET = 0  # pthread_mutex_t: 40 bytes on x86-64, 48 on aarch64
+# One slot per holder, each a mutex (pthread_mutex_t: 40 bytes on x86-64, 48 on aarch64) and
+# at +128 a uint32 that is 1 once its holder has taken it.
+DAEMON_SLOT = 0
+EMULATOR_SLOT = 1
+_SLOT_BYTES = 256
+_HELD_OFFSET = 128
 _ATTR_BYTES = 64  # pthread_mutexattr_t: 4 or 8 bytes
-_HELD_OFFSET = 128  # uint32: 1 once the daemon holds the mutex
 _PTHREAD_PROCESS_SHARED = 1
 _PTHREAD_MUTEX_ROBUST = 1
 _EOWNERDEAD = 130
@@ -52,9 +59,10 @@ def _libc() -> ctypes.CDLL | None:
 
 
 class OwnerLock:
-    """One process's view of the shared mutex (the mapping lives as long as this object)."""
+    """One process's view of one holder's mutex (``slot``: whose, DAEMON_SLOT or
+    EMULATOR_SLOT)."""
 
-    def __init__(self, fd: int) -> None:
+    def __init__(self, fd: int, slot: int = DAEMON_SLOT) -> None:
         libc = _libc()
         if libc is None:
             raise OSError("no process-shared robust mutexes here (glibc on Linux needed)")
@@ -65,26 +73,28 @@ class OwnerLock:
         address = libc.mmap(None, _REGION_BYTES, _PROT_READ_WRITE, mmap.MAP_SHARED, fd, 0)
         if address is None or address == _MAP_FAILED:
             raise OSError(ctypes.get_errno(), "cannot map the peer lock")
-        self._mutex = ctypes.c_void_p(address + _MUTEX_OFFSET)
-        self._held = ctypes.c_uint32.from_address(address + _HELD_OFFSET)
+        self._mutex = ctypes.c_void_p(address + slot * _SLOT_BYTES)
+        self._held = ctypes.c_uint32.from_address(address + slot * _SLOT_BYTES + _HELD_OFFSET)
         self._gone = False
 
     @classmethod
-    def from_environment(cls, environ: Mapping[str, str] = os.environ) -> OwnerLock | None:
+    def from_environment(
+        cls, environ: Mapping[str, str] = os.environ, slot: int = DAEMON_SLOT
+    ) -> OwnerLock | None:
         """The lock ``ballbeam run`` handed this process, if any (a bad one: a warning, and
         the pipe alone does the work)."""
         value = environ.get(PEER_LOCK_ENV)
         if value is None:
             return None
         try:
-            return cls(int(value))
+            return cls(int(value), slot)
         except (ValueError, OSError) as error:
             log.warning("%s=%r unusable (%s): a dead daemon is noticed through the pipe only",
                         PEER_LOCK_ENV, value, error)
             return None
 
     def hold(self) -> bool:
-        """The daemon, from its main thread, once: take the lock and never give it back. Its
+        """Its holder, from its main thread, once: take the lock and never give it back. Its
         death, however it dies, releases it as "owner died". False (and a warning) if refused."""
         error = self._libc.pthread_mutex_lock(self._mutex)
         if error not in (0, _EOWNERDEAD):
@@ -94,16 +104,20 @@ class OwnerLock:
         self._held.value = 1
         return True
 
+    def holder_alive(self) -> bool:
+        """Has the holder taken its lock, and is it still alive?"""
+        return self._held.value == 1 and not self.holder_gone()
+
     def holder_gone(self) -> bool:
-        """The emulator, once a period: has the daemon that took the lock died? One
+        """The peer, once a period: has the holder that took the lock died? One
         non-blocking try (about a microsecond): it fails while the holder lives, and succeeds,
         "owner died", from the moment the kernel has walked the dead holder's robust list."""
         if self._gone:
             return True
-        if self._held.value == 0:  # not taken yet: the daemon is still starting
+        if self._held.value == 0:  # not taken yet: the holder is still starting
             return False
         error = self._libc.pthread_mutex_trylock(self._mutex)
-        self._gone = error in (0, _EOWNERDEAD)  # 0: released, which the daemon never does
+        self._gone = error in (0, _EOWNERDEAD)  # 0: released, which a holder never does
         return self._gone
 
 
@@ -118,14 +132,15 @@ def create_owner_lock() -> int | None:
         os.ftruncate(fd, _REGION_BYTES)
         with mmap.mmap(fd, _REGION_BYTES, flags=mmap.MAP_SHARED) as region:
             attr = ctypes.create_string_buffer(_ATTR_BYTES)
-            mutex = ctypes.c_char.from_buffer(region, _MUTEX_OFFSET)
             failed = (
                 libc.pthread_mutexattr_init(attr)
                 or libc.pthread_mutexattr_setpshared(attr, _PTHREAD_PROCESS_SHARED)
                 or libc.pthread_mutexattr_setrobust(attr, _PTHREAD_MUTEX_ROBUST)
-                or libc.pthread_mutex_init(ctypes.byref(mutex), attr)
             )
-            del mutex  # the buffer's export must end before the mapping closes
+            for slot in (DAEMON_SLOT, EMULATOR_SLOT):
+                mutex = ctypes.c_char.from_buffer(region, slot * _SLOT_BYTES)
+                failed = failed or libc.pthread_mutex_init(ctypes.byref(mutex), attr)
+                del mutex  # the buffer's export must end before the mapping closes
     except OSError:
         os.close(fd)
         return None

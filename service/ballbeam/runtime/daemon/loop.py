@@ -43,6 +43,7 @@ from ballbeam.protocol.secoc import FrameAuthenticator
 from ballbeam.runtime.bus import recv_frame
 from ballbeam.runtime.daemon.command_out import CommandOut
 from ballbeam.runtime.daemon.intake import SensorIntake, SentCommands
+from ballbeam.runtime.owner_lock import OwnerLock
 from ballbeam.runtime.peer_link import signal_run_over
 from ballbeam.runtime.stop import StopFlag
 from ballbeam.runtime.ticker import Ticker, spin_ns_for_this_process
@@ -114,11 +115,15 @@ class ControllerDaemon:
         stop: StopFlag,
         auth: FrameAuthenticator | None = None,
         run_over_fd: int | None = None,
+        emulator_lock: OwnerLock | None = None,
     ) -> None:
         """``run_over_fd``: the daemon's end of ``ballbeam run``'s peer link, to tell the
-        emulator when the run is over and record its final counters."""
+        emulator when the run is over and record its final counters; ``emulator_lock``: the
+        robust mutex the emulator holds (runtime/owner_lock.py), to tell a late plant from a
+        dead one."""
         self.config = config
         self.run_over_fd = run_over_fd
+        self.emulator_lock = emulator_lock
         self.design = design
         self.bus = bus
         self.recording = recording
@@ -223,7 +228,7 @@ class ControllerDaemon:
         else:
             reading = SensorReading(sample.angle_counts, sample.position_counts)
             self.cycles_since_sensor = 0
-        timeout = self.config.controller.sensor_timeout_periods
+        timeout = self._sensor_timeout_periods()
         if self.state.prediction is not None and self.cycles_since_sensor >= timeout:
             self._fault_cycle()
             return
@@ -251,6 +256,20 @@ class ControllerDaemon:
         sensor_counter = latest.counter if latest is not None else 0
         self.commands.send(self.log_time_ns, cycle, voltage_v, requested_v, enable,
                            sensor_counter)
+
+    def _sensor_timeout_periods(self) -> int:
+        """Silent periods before 0 V: ``sensor_timeout_periods``; with ``ballbeam run``'s link,
+        more while the emulator is known alive (its samples are late, the plant is not lost:
+        the model carries the estimate), and none once it is known dead."""
+        controller = self.config.controller
+        lock = self.emulator_lock
+        if lock is None or self.cycles_since_sensor == 0:
+            return controller.sensor_timeout_periods
+        if lock.holder_gone():
+            return 1
+        if lock.holder_alive():
+            return max(controller.sensor_timeout_periods, controller.sensor_timeout_alive_periods)
+        return controller.sensor_timeout_periods
 
     def _record_sensor(self, cycle: int, reading: SensorReading | None) -> None:
         sample = self.intake.latest

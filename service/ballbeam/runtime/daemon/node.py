@@ -20,7 +20,7 @@ from ballbeam.protocol.frames import FrameContract
 from ballbeam.protocol.secoc import FrameAuthenticator
 from ballbeam.runtime.bus import open_bus
 from ballbeam.runtime.daemon.loop import ControllerDaemon
-from ballbeam.runtime.owner_lock import OwnerLock
+from ballbeam.runtime.owner_lock import EMULATOR_SLOT, OwnerLock
 from ballbeam.runtime.peer_link import run_over_fd
 from ballbeam.runtime.process import (
     REALTIME_SWITCH_INTERVAL_S,
@@ -172,6 +172,7 @@ def _run_recorded(
         peer_lock = OwnerLock.from_environment()  # held till death: the emulator hears of it
         if peer_lock is not None:
             peer_lock.hold()
+        emulator_lock = OwnerLock.from_environment(slot=EMULATOR_SLOT)  # the emulator's, held
         recording = RunRecording(recorder)  # every channel of the log, the live view's too
         if live is not None:
             live.start()
@@ -179,7 +180,7 @@ def _run_recorded(
         bus = open_bus(config.bus)
         try:
             daemon = ControllerDaemon(config, design, bus, contract, recording, stop, auth,
-                                      run_over_fd=link_fd)
+                                      run_over_fd=link_fd, emulator_lock=emulator_lock)
             settle_heap()
             try:
                 stats = daemon.run()
