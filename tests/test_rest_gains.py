@@ -106,3 +106,32 @@ def test_the_servo_catch_keeps_the_plans_last_brake_from_creeping_past_the_rest_
     plan_s = run.design.plan_duration_s
     settling = (run.trace.time_s > plan_s) & (run.trace.time_s < plan_s + 1.5)
     assert sign_changes(run.trace.voltage_v[settling]) / 1.5 <= DITHER_BOUND_HZ
+
+
+@pytest.mark.parametrize(("lateness_ns", "learns"), [(0, True), (5_000_000, False)])
+def test_a_late_loop_does_not_learn_the_dead_zone(lateness_ns: int, learns: bool) -> None:
+    """Real time: the dead-zone learning compares the servo's motion with the model's, which
+    assumes commands land on time. A loop running later than the design allows for (5 ms here)
+    learns nothing (under load it had learnt 0.04 V for the plant's 0.1 V, and the ball went
+    into a slow ±0.4 mm oscillation at rest); on time, it opens its windows as offline."""
+    from ballbeam.assembly import controller_design, plant_parameters
+    from ballbeam.core.control import ControllerState, control_cycle
+    from ballbeam.core.plant import PlantPhysics, initial_noise, next_noise, read_sensors
+
+    config = load_config(PAPER, ["run.mode='realtime'", "run.duration_s=1.0"])
+    design = controller_design(config)
+    assert design.deadzone_learning is not None
+    physics = PlantPhysics(plant_parameters(config))
+    rng = np.random.default_rng(1)
+    state = np.asarray(config.initial.state(), dtype=float)
+    noise = initial_noise(physics.params, rng)
+    controller, windows = ControllerState(), 0
+    for _ in range(1000):
+        reading = read_sensors(physics.params, state, noise)
+        controller, output = control_cycle(design, controller, reading, lateness_ns)
+        windows += controller.deadzone_window is not None
+        state = physics.advance(state, output.voltage_v, config.plant.physics_substeps)
+        noise = next_noise(physics.params, noise, rng)
+    assert (windows > 0) is learns, windows
+    if not learns:
+        assert controller.deadzone_v in (None, design.deadzone_v)  # the design's, untouched
