@@ -358,8 +358,13 @@ class PlantEmulator:
                 self._take_last_commands(None, lockstep=False)
                 break
             # Commands that came while this process was off the CPU (or spinning) act from when
-            # they came: the plant is physics, it does not wait for its emulator's turn.
-            while (message := self._recv(0.0)) is not None:
+            # they came: the plant is physics, it does not wait for its emulator's turn. For
+            # half a period at most: a flood must not hold the sample.
+            catch_up_until_ns = tick.start_ns + self.sensor_period_ns // 2
+            while (
+                time.monotonic_ns() < catch_up_until_ns
+                and (message := self._recv(0.0)) is not None
+            ):
                 physics_ns = self._take_command(message, physics_ns, tick.deadline_ns)
             # Advance to the deadline, then sample: the sensor reads the state at t_k.
             due = (tick.deadline_ns - physics_ns) // self.substep_ns

@@ -28,6 +28,17 @@ from .harness import (
 )
 
 
+def kill_emulator_then_daemon_lost(bench: Bench, after_s: float) -> None:
+    """Once the loop cycles, wait ``after_s``, SIGKILL the emulator; the daemon must then end
+    the run itself, with the plant-lost exit code."""
+    bench.wait_cycling()
+    time.sleep(after_s)
+    bench.emulator.kill()
+    bench.emulator.wait()
+    daemon_exit = bench.wait_daemon(START_TIMEOUT_S)
+    assert daemon_exit == EXIT_PLANT_LOST, bench.stderr(bench.daemon)[-2000:]
+
+
 def _last_fresh_cycle(log: RunLog, before_cycle: int) -> int:
     sensor = log.topics["/sensor"].values
     mask = (sensor["fresh"] == 1) & (sensor["cycle"] < before_cycle)
@@ -119,13 +130,7 @@ def test_with_the_launchers_link_a_killed_emulator_gets_0v_at_the_first_silent_p
     not waited for (0 V from the first silent cycle on), where a live one whose samples are
     late is coasted over for ``sensor_timeout_alive_periods``."""
     with Bench(tmp_path, "realtime", 3.0, peer_link=True) as bench:
-        bench.wait_cycling()
-        time.sleep(random.Random(5).uniform(0.4, 1.0))
-        bench.emulator.kill()
-        bench.emulator.wait()
-        daemon_exit = bench.wait_daemon(START_TIMEOUT_S)
-        daemon_stderr = bench.stderr(bench.daemon)
-    assert daemon_exit == EXIT_PLANT_LOST, daemon_stderr[-2000:]
+        kill_emulator_then_daemon_lost(bench, random.Random(5).uniform(0.4, 1.0))
     log = read_log(bench.log_path)
     fault_cycle = int(faults(log, "sensor_timeout")[-1]["cycle"])
     last_fresh = _last_fresh_cycle(log, fault_cycle)
@@ -144,13 +149,7 @@ def test_emulator_killed_lockstep_daemon_stops_on_silence_and_finishes_its_file(
     tmp_path: Path,
 ) -> None:
     with Bench(tmp_path, "lockstep", 20.0, "controller.lockstep_timeout_s=0.5") as bench:
-        bench.wait_cycling()
-        time.sleep(0.5)
-        bench.emulator.kill()
-        bench.emulator.wait()
-        daemon_exit = bench.wait_daemon(START_TIMEOUT_S)
-        daemon_stderr = bench.stderr(bench.daemon)
-    assert daemon_exit == EXIT_PLANT_LOST, daemon_stderr[-2000:]
+        kill_emulator_then_daemon_lost(bench, 0.5)
     log = read_log(bench.log_path)
     assert not log.truncated
     assert summary_meta(log)["end_reason"] == "plant_silent"

@@ -89,8 +89,8 @@ class OwnerLock:
         try:
             return cls(int(value), slot)
         except (ValueError, OSError) as error:
-            log.warning("%s=%r unusable (%s): a dead daemon is noticed through the pipe only",
-                        PEER_LOCK_ENV, value, error)
+            log.warning("%s=%r unusable (%s): a dead peer is noticed more slowly (the pipe, "
+                        "or the silence)", PEER_LOCK_ENV, value, error)
             return None
 
     def hold(self) -> bool:
@@ -98,15 +98,16 @@ class OwnerLock:
         death, however it dies, releases it as "owner died". False (and a warning) if refused."""
         error = self._libc.pthread_mutex_lock(self._mutex)
         if error not in (0, _EOWNERDEAD):
-            log.warning("cannot take the peer lock (%s): the emulator notices this daemon's "
-                        "death through the pipe only", os.strerror(error))
+            log.warning("cannot take the peer lock (%s): the peer notices this process's death "
+                        "more slowly (the pipe, or the silence)", os.strerror(error))
             return False
         self._held.value = 1
         return True
 
-    def holder_alive(self) -> bool:
-        """Has the holder taken its lock, and is it still alive?"""
-        return self._held.value == 1 and not self.holder_gone()
+    @property
+    def taken(self) -> bool:
+        """Has the holder taken its lock (it may have died since: :meth:`holder_gone`)?"""
+        return self._held.value == 1
 
     def holder_gone(self) -> bool:
         """The peer, once a period: has the holder that took the lock died? One
@@ -114,7 +115,7 @@ class OwnerLock:
         "owner died", from the moment the kernel has walked the dead holder's robust list."""
         if self._gone:
             return True
-        if self._held.value == 0:  # not taken yet: the holder is still starting
+        if not self.taken:  # the holder is still starting
             return False
         error = self._libc.pthread_mutex_trylock(self._mutex)
         self._gone = error in (0, _EOWNERDEAD)  # 0: released, which a holder never does

@@ -18,6 +18,7 @@ from pathlib import Path
 
 from ballbeam.config import Config, load_config, resolve_config_path
 from ballbeam.errors import RecorderError
+from ballbeam.runtime.ticker import scheduled_realtime
 
 log = logging.getLogger("ballbeam")
 
@@ -89,7 +90,7 @@ def apply_scheduling(
             log.warning("%s", realtime_refused_message(
                 realtime_priority, error.strerror or "not permitted"
             ))
-    if fair_slice_us and "SCHED_FIFO" not in applied.get("realtime_priority", ""):
+    if fair_slice_us and not scheduled_realtime():
         applied["fair_slice"] = request_fair_slice(fair_slice_us)
     return applied
 

@@ -73,5 +73,9 @@ def spin_ns_for_this_process(spin_us: int) -> int:
     which then preempt the loop right at its deadlines: with two of them running, an
     unprivileged run overran 560–740 times in 20 s spinning, 130–270 times not
     (bench/realtime_load.py)."""
-    realtime = os.sched_getscheduler(0) in (os.SCHED_FIFO, os.SCHED_RR)
-    return spin_us * 1000 if realtime else 0
+    return spin_us * 1000 if scheduled_realtime() else 0
+
+
+def scheduled_realtime() -> bool:
+    """Does this process run under a real-time policy (SCHED_FIFO or SCHED_RR)?"""
+    return os.sched_getscheduler(0) in (os.SCHED_FIFO, os.SCHED_RR)

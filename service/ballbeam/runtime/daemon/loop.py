@@ -267,7 +267,7 @@ class ControllerDaemon:
             return controller.sensor_timeout_periods
         if lock.holder_gone():
             return 1
-        if lock.holder_alive():
+        if lock.taken:  # and not gone: alive
             return max(controller.sensor_timeout_periods, controller.sensor_timeout_alive_periods)
         return controller.sensor_timeout_periods
 
