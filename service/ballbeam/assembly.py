@@ -231,6 +231,7 @@ def _deadzone_learning(config: Config) -> DeadZoneLearning | None:
         rate=controller.deadzone_learning_rate,
         below_v=controller.deadzone_learning_below_v,
         max_v=controller.deadzone_max_v,
+        max_lateness_ns=controller.deadzone_learning_max_lateness_us * 1000,
     )
 
 

@@ -355,6 +355,11 @@ class ControllerSection(_Section):
     deadzone_max_v: float = Field(
         1.0, gt=0, le=50, description="dead-zone learning: the largest dead zone believed"
     )
+    deadzone_learning_max_lateness_us: int = Field(
+        500, ge=0, le=100_000, description="real time: dead-zone learning pauses while the "
+        "loop's recent worst lateness is beyond this (late commands move the servo later than "
+        "the model it learns from says)"
+    )
     bound_tolerance_deg: float = Field(
         0.5,
         ge=0,

@@ -151,6 +151,15 @@ class DeadZoneLearning:
     rate: float
     below_v: float
     max_v: float
+    # Real time: the window's model assumes each command lands when the cycle sends it; a loop
+    # running later moves the servo later than that, and the difference reads as dead zone
+    # (under load it had learnt 0.03 V for the plant's 0.1 V). Beyond this recent worst
+    # lateness [ns] no window opens. Offline and in lock-step the lateness is 0.
+    max_lateness_ns: float = math.inf
+
+    def learns_at(self, worst_lateness_ns: int) -> bool:
+        """May a window run while the loop's recent worst lateness is ``worst_lateness_ns``?"""
+        return worst_lateness_ns <= self.max_lateness_ns
 
     def step(
         self,

@@ -27,7 +27,6 @@ from ballbeam.core.guard import (
     AngleGuard,
     LatenessWatch,
     guarded_voltage,
-    late_loop,
     watch_lateness,
 )
 from ballbeam.core.model import Row4, as_row4
@@ -440,11 +439,11 @@ def control_cycle(
     window = state.deadzone_window
     learning = design.deadzone_learning
     if learning is not None:
-        if measurement is None or late_loop(design.guard, lateness.worst_ns):
+        if measurement is None or not learning.learns_at(lateness.worst_ns):
             # A window needs the angle measured at both ends, and commands that landed when
-            # the model says: a loop running late moves the servo later than predicted, and
-            # learnt from that, the dead zone drifted to 0.04 V (the plant's: 0.1 V) and the
-            # ball went into a slow ±0.4 mm oscillation at rest (unprivileged, under load).
+            # the model says: learnt from a late loop, the dead zone drifted to 0.03 V (the
+            # plant's: 0.1 V) and the ball went into a slow ±0.4 mm oscillation at rest
+            # (unprivileged, under load).
             window = None
         else:
             deadzone_v, window = learning.step(

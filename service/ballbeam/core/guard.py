@@ -118,12 +118,6 @@ def watch_lateness(
     return LatenessWatch(watch.worst_ns, watch.age_cycles + 1)
 
 
-def late_loop(guard: AngleGuard | None, worst_ns: int) -> bool:
-    """Real time: has the loop lately run later than the design allows for (the look-ahead
-    extended)? False offline and in lock-step."""
-    return guard is not None and lateness_step(guard, worst_ns) is not None
-
-
 def lateness_step(
     guard: AngleGuard, worst_ns: int
 ) -> tuple[float, float, float, float, float] | None:

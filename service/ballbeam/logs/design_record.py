@@ -51,7 +51,8 @@ noise_levels, noise_tracking_L   present with noise adaptation: levels (K,), gai
 noise_rest_L, noise_expected_square, noise_smoothing_per_cycle: rest gains (K, 4, 2)
                                      (optional), scalars
 learn_*                              present with dead-zone learning: min_motion_rad,
-                                     judge_motion_rad, rate, below_v, max_v (scalars)
+                                     judge_motion_rad, rate, below_v, max_v,
+                                     max_lateness_ns (scalars; older logs: none)
 soft_*                               present with the soft cap: theta_limit_rad,
                                      zone_gain_per_s, rate_gain_per_s, alpha,
                                      alpha_beta, gap_step_rad (scalars),
@@ -64,6 +65,7 @@ Integers (cycles) are stored as float64 too; they are exact below 2**53.
 from __future__ import annotations
 
 import io
+import math
 import zipfile
 from collections.abc import Mapping
 from typing import Any
@@ -72,7 +74,7 @@ import numpy as np
 
 from ballbeam.core.adaptation import BallGainAdaptation, DeadZoneLearning, Gain, NoiseAdaptation
 from ballbeam.core.control import ControllerDesign, ObserverLaw, RestGains
-from ballbeam.core.guard import AngleGuard, SoftCap
+from ballbeam.core.guard import COMPUTE_ALLOWANCE_NS, AngleGuard, SoftCap
 from ballbeam.core.model import Row4, as_row4
 from ballbeam.errors import LogFormatError
 
@@ -146,6 +148,7 @@ def encode_design(design: ControllerDesign) -> bytes:
     learning = design.deadzone_learning
     if learning is not None:
         arrays.update({f"learn_{name}": _f8(getattr(learning, name)) for name in _LEARN_SCALARS})
+        arrays["learn_max_lateness_ns"] = _f8(learning.max_lateness_ns)
     guard = design.guard
     if guard is not None:
         arrays.update({f"guard_{name}": _f8(getattr(guard, name)) for name in _GUARD_SCALARS})
@@ -254,7 +257,8 @@ def decode_design(data: bytes, where: str) -> ControllerDesign:
         learning = None
         if "learn_rate" in arrays:
             learning = DeadZoneLearning(
-                **{name: _scalar(arrays[f"learn_{name}"]) for name in _LEARN_SCALARS}
+                **{name: _scalar(arrays[f"learn_{name}"]) for name in _LEARN_SCALARS},
+                max_lateness_ns=_learning_lateness_ns(arrays, guard),
             )
         return ControllerDesign(
             **{name: _scalar(arrays[name]) for name in _SCALARS},
@@ -344,6 +348,16 @@ def _scalar(array: np.ndarray) -> float:
     if array.shape != ():
         raise ValueError(f"expected a scalar, got shape {array.shape}")
     return float(array)
+
+
+def _learning_lateness_ns(arrays: Mapping[str, np.ndarray], guard: AngleGuard | None) -> float:
+    """The dead-zone learning's lateness bound; a log from before it had one paused the
+    learning where the guard's look-ahead grew beyond its allowance."""
+    if "learn_max_lateness_ns" in arrays:
+        return _scalar(arrays["learn_max_lateness_ns"])
+    if guard is None or not guard.lateness_steps:
+        return math.inf
+    return float(guard.lateness_allowance_ns - COMPUTE_ALLOWANCE_NS)
 
 
 def _lateness_fields(arrays: Mapping[str, np.ndarray]) -> dict[str, Any]:
