@@ -224,3 +224,43 @@ def test_the_lateness_watch_keeps_the_worst_for_its_hold_then_starts_again() -> 
     assert seen == [100, 5_000, 5_000, 5_000, 5_000, 500, 9_000, 9_000, 9_000]
     # No lateness steps (offline): the watch never moves.
     assert watch_lateness(None, LatenessWatch(), 7_000) == LatenessWatch()
+
+
+def test_the_soft_limit_is_an_encoder_level_and_the_servo_rests_on_it_without_hunting() -> None:
+    """Real time, paper run: the soft limit (52° less its margins, 51.65°) lay between the
+    encoder levels 51.596° and 51.684°. On the second limit arc the tracker pushes outward,
+    the cap pushed back at the outer level and let go at the inner one, and the command hunted
+    ±0.3 V at 50 Hz (33 sign changes in 0.4 s on the bench). The limit now is the level at or
+    inside it; held there, the servo gets 0 V. Plant: the emulator's physics (dead zone,
+    encoder), controller: the cycle, one period apart."""
+    from ballbeam.assembly import plant_parameters
+    from ballbeam.core.control import ControllerState, control_cycle
+    from ballbeam.core.metrics import sign_changes
+    from ballbeam.core.plant import PlantPhysics, initial_noise, next_noise, read_sensors
+
+    config = load_config(None, ["run.mode='realtime'", "plant.seed=0"])
+    design = controller_design(config)
+    assert design.guard is not None and design.guard.soft is not None
+    step_rad = config.sensors.encoder_step_rad
+    levels = design.guard.soft.theta_limit_rad / step_rad
+    assert levels == pytest.approx(round(levels), abs=1e-9)
+    configured_deg = (config.limits.theta_deg - config.controller.soft_guard_margin_deg
+                      - config.controller.theta_guard_realtime_margin_deg)
+    assert 0 <= configured_deg - math.degrees(design.guard.soft.theta_limit_rad) < math.degrees(
+        step_rad
+    )
+    physics = PlantPhysics(plant_parameters(config))
+    rng = np.random.default_rng(0)
+    state = np.asarray(config.initial.state(), dtype=float)
+    noise = initial_noise(physics.params, rng)
+    controller, voltages, angles = ControllerState(), [], []
+    for _ in range(1600):
+        reading = read_sensors(physics.params, state, noise)
+        controller, output = control_cycle(design, controller, reading)
+        voltages.append(output.voltage_v)
+        angles.append(state[0])
+        state = physics.advance(state, output.voltage_v, config.plant.physics_substeps)
+        noise = next_noise(physics.params, noise, rng)
+    arc = slice(1250, 1600)  # the second arc, at −θ_s
+    assert np.max(np.abs(np.degrees(angles[arc]) + 51.6)) < 0.1  # on the arc throughout
+    assert sign_changes(np.asarray(voltages[arc])) <= 6

@@ -286,10 +286,22 @@ def _angle_guard(config: Config, model: LinearModel) -> AngleGuard:
     )
     soft = None
     if controller.soft_guard:
+        soft_limit_rad = math.radians(
+            config.limits.theta_deg - controller.soft_guard_margin_deg - extra_deg
+        )
+        if realtime:
+            # Real time: the soft limit on an encoder level (the one at or inside it). Its
+            # extra margin puts it 0.35° inside the plan's arcs, where the tracker pushes out
+            # against it; between two levels the servo cannot be held still there: reading
+            # the outer level the cap pushed back, reading the inner one it let the tracker
+            # push out again, and the command hunted ±0.3 V at 50 Hz on the arcs (33 sign
+            # changes in 0.4 s). Offline and in lock-step the limit is 0.05° from the arcs
+            # and the servo rides them; the same snap there (0.007°) only moved fragile
+            # cases (a 5× noise seed from 1.08 to 1.88 T*).
+            step_rad = config.sensors.encoder_step_rad
+            soft_limit_rad = math.floor(soft_limit_rad / step_rad + 1e-9) * step_rad
         soft = make_soft_cap(
-            theta_limit_rad=math.radians(
-                config.limits.theta_deg - controller.soft_guard_margin_deg - extra_deg
-            ),
+            theta_limit_rad=soft_limit_rad,
             alpha=alpha,
             alpha_beta=alpha_beta,
             brake_v=controller.soft_guard_brake_v,
