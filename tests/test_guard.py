@@ -230,9 +230,9 @@ def test_the_soft_limit_is_an_encoder_level_and_the_servo_rests_on_it_without_hu
     """Real time, paper run: the soft limit (52° less its margins, 51.65°) lay between the
     encoder levels 51.596° and 51.684°. On the second limit arc the tracker pushes outward,
     the cap pushed back at the outer level and let go at the inner one, and the command hunted
-    ±0.3 V at 50 Hz (33 sign changes in 0.4 s on the bench). The limit now is the level at or
-    inside it; held there, the servo gets 0 V. Plant: the emulator's physics (dead zone,
-    encoder), controller: the cycle, one period apart."""
+    ±0.3 V at 50 Hz (33 sign changes in 0.4 s on the bench, 38 in this loop). The limit now is
+    the nearest level inside the hard barrier's limit; held there, the servo gets 0 V. Plant:
+    the emulator's physics (dead zone, encoder), controller: the cycle, one period apart."""
     from ballbeam.assembly import plant_parameters
     from ballbeam.core.control import ControllerState, control_cycle
     from ballbeam.core.metrics import sign_changes
@@ -241,14 +241,13 @@ def test_the_soft_limit_is_an_encoder_level_and_the_servo_rests_on_it_without_hu
     config = load_config(None, ["run.mode='realtime'", "plant.seed=0"])
     design = controller_design(config)
     assert design.guard is not None and design.guard.soft is not None
-    step_rad = config.sensors.encoder_step_rad
-    levels = design.guard.soft.theta_limit_rad / step_rad
-    assert levels == pytest.approx(round(levels), abs=1e-9)
+    step_deg = math.degrees(config.sensors.encoder_step_rad)
+    soft_deg = math.degrees(design.guard.soft.theta_limit_rad)
+    assert soft_deg / step_deg == pytest.approx(588, abs=1e-9)  # 51.680°
     configured_deg = (config.limits.theta_deg - config.controller.soft_guard_margin_deg
                       - config.controller.theta_guard_realtime_margin_deg)
-    assert 0 <= configured_deg - math.degrees(design.guard.soft.theta_limit_rad) < math.degrees(
-        step_rad
-    )
+    assert abs(configured_deg - soft_deg) <= step_deg / 2
+    assert design.guard.soft.theta_limit_rad <= design.guard.theta_limit_rad
     physics = PlantPhysics(plant_parameters(config))
     rng = np.random.default_rng(0)
     state = np.asarray(config.initial.state(), dtype=float)
@@ -263,4 +262,8 @@ def test_the_soft_limit_is_an_encoder_level_and_the_servo_rests_on_it_without_hu
         noise = next_noise(physics.params, noise, rng)
     arc = slice(1250, 1600)  # the second arc, at −θ_s
     assert np.max(np.abs(np.degrees(angles[arc]) + 51.6)) < 0.1  # on the arc throughout
-    assert sign_changes(np.asarray(voltages[arc])) <= 6
+    on_arc = np.asarray(voltages[arc])
+    # Unsnapped, this loop makes 38 sign changes here and sends exactly 0 V in under a tenth of
+    # the cycles; on the level, what is left is the tracker's own corrections, as offline.
+    assert sign_changes(on_arc) <= 20
+    assert np.mean(on_arc == 0.0) >= 0.5

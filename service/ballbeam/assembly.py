@@ -284,22 +284,16 @@ def _angle_guard(config: Config, model: LinearModel) -> AngleGuard:
     brake_v = controller.theta_guard_brake_v or max(
         0.5 * config.limits.voltage_v, config.limits.voltage_v - config.plant.deadzone_v
     )
+    hard_limit_rad = math.radians(
+        config.limits.theta_deg - controller.theta_guard_margin_deg - extra_deg
+    )
     soft = None
     if controller.soft_guard:
         soft_limit_rad = math.radians(
             config.limits.theta_deg - controller.soft_guard_margin_deg - extra_deg
         )
         if realtime:
-            # Real time: the soft limit on an encoder level (the one at or inside it). Its
-            # extra margin puts it 0.35° inside the plan's arcs, where the tracker pushes out
-            # against it; between two levels the servo cannot be held still there: reading
-            # the outer level the cap pushed back, reading the inner one it let the tracker
-            # push out again, and the command hunted ±0.3 V at 50 Hz on the arcs (33 sign
-            # changes in 0.4 s). Offline and in lock-step the limit is 0.05° from the arcs
-            # and the servo rides them; the same snap there (0.007°) only moved fragile
-            # cases (a 5× noise seed from 1.08 to 1.88 T*).
-            step_rad = config.sensors.encoder_step_rad
-            soft_limit_rad = math.floor(soft_limit_rad / step_rad + 1e-9) * step_rad
+            soft_limit_rad = _on_encoder_level(soft_limit_rad, hard_limit_rad, config)
         soft = make_soft_cap(
             theta_limit_rad=soft_limit_rad,
             alpha=alpha,
@@ -312,9 +306,7 @@ def _angle_guard(config: Config, model: LinearModel) -> AngleGuard:
             reaction_s=max(latency_s - controller.period_s, 0.0),
         )
     return make_angle_guard(
-        theta_limit_rad=math.radians(
-            config.limits.theta_deg - controller.theta_guard_margin_deg - extra_deg
-        ),
+        theta_limit_rad=hard_limit_rad,
         alpha=alpha,
         alpha_beta=alpha_beta,
         brake_v=brake_v,
@@ -329,6 +321,23 @@ def _angle_guard(config: Config, model: LinearModel) -> AngleGuard:
             round(controller.guard_lateness_hold_s / controller.period_s) if realtime else 0
         ),
     )
+
+
+def _on_encoder_level(soft_limit_rad: float, hard_limit_rad: float, config: Config) -> float:
+    """Real time: the soft limit moved to the nearest encoder level (never past the hard
+    barrier's limit). Its extra margin puts it 0.35° inside the plan's arcs, where the tracker
+    pushes out against it, and between two levels the servo cannot be held still: reading the
+    outer level the cap pushed back, reading the inner one it let the tracker push out again,
+    and the command hunted ±0.3 V at 50 Hz on the arcs (33 sign changes in 0.4 s). On a level,
+    reading it asks for no motion. The nearest level, not the inner one: 0.09° further in, the
+    last swing fell 0.3–0.6° short of the rest band (rest 1.80–1.82 s, not 1.776 s). Offline
+    and in lock-step the soft limit is 0.05° from the arcs, which the servo rides, and stays:
+    the same move there (0.007°) only shook fragile cases (a 5× noise seed: 1.08 → 1.88 T*)."""
+    step_rad = config.sensors.encoder_step_rad
+    levels = round(soft_limit_rad / step_rad)
+    if levels * step_rad > hard_limit_rad:
+        levels = math.floor(hard_limit_rad / step_rad)
+    return levels * step_rad
 
 
 def plant_parameters(config: Config) -> EmulatedPlant:
