@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 
@@ -210,20 +211,45 @@ def test_a_late_loop_brakes_sooner_near_the_limit() -> None:
     assert allowed[-1] < allowed[0]
 
 
-def test_the_lateness_watch_keeps_the_worst_for_its_hold_then_starts_again() -> None:
-    """By hand: hold 3 cycles. A 5 ms cycle is kept over smaller ones for 3 cycles, a larger
-    one replaces it at once, and after the hold the current lateness is the worst."""
+def test_the_lateness_watch_keeps_the_worst_of_the_last_two_buckets() -> None:
+    """By hand: hold 3 cycles, so buckets of 3. The worst is that of the current bucket and the
+    one before: a lateness is kept at least 3 cycles and at most 6."""
     config = load_config(None, ["run.mode='realtime'", "controller.guard_lateness_hold_s=0.003"])
     real_time_guard = controller_design(config).guard
     assert real_time_guard is not None and real_time_guard.lateness_hold_cycles == 3
     watch = LatenessWatch()
     seen = []
-    for lateness_ns in (100, 5_000, 200, 300, 400, 500, 9_000, 10, 20):
+    for lateness_ns in (100, 5_000, 200, 300, 400, 500, 9_000, 10, 20, 30, 40, 50, 60):
         watch = watch_lateness(real_time_guard, watch, lateness_ns)
         seen.append(watch.worst_ns)
-    assert seen == [100, 5_000, 5_000, 5_000, 5_000, 500, 9_000, 9_000, 9_000]
+    assert seen == [100, 5_000, 5_000, 5_000, 5_000, 5_000, 9_000, 9_000, 9_000, 9_000, 9_000,
+                    9_000, 60]
     # No lateness steps (offline): the watch never moves.
     assert watch_lateness(None, LatenessWatch(), 7_000) == LatenessWatch()
+
+
+def test_the_lateness_watch_never_forgets_a_lateness_of_its_hold() -> None:
+    """Against a brute-force sliding maximum over random lateness: the watch is never below the
+    worst of the last ``hold`` cycles. The single worst kept before the buckets was, after an
+    older and larger lateness aged out (a 3 ms lateness 150 cycles old was forgotten when a
+    3.8 ms one expired, and the dead-zone learning resumed on a late loop)."""
+    config = load_config(None, ["run.mode='realtime'"])
+    guard = controller_design(config).guard
+    assert guard is not None and guard.lateness_buckets
+    hold = guard.lateness_hold_cycles
+    rng = np.random.default_rng(3)
+    lateness = np.where(rng.random(5000) < 0.01, rng.integers(0, 5_000_000, 5000),
+                        rng.integers(0, 100_000, 5000))
+    single_worst = dataclasses.replace(guard, lateness_buckets=False)
+    watch, old_watch, forgotten = LatenessWatch(), LatenessWatch(), 0
+    for index, lateness_ns in enumerate(lateness.tolist()):
+        watch = watch_lateness(guard, watch, lateness_ns)
+        old_watch = watch_lateness(single_worst, old_watch, lateness_ns)
+        recent = int(lateness[max(index - hold + 1, 0): index + 1].max())
+        assert watch.worst_ns >= recent
+        assert watch.worst_ns <= int(lateness[max(index - 2 * hold + 1, 0): index + 1].max())
+        forgotten += old_watch.worst_ns < recent
+    assert forgotten > 0  # what the buckets fix
 
 
 def test_the_soft_limit_is_an_encoder_level_and_the_servo_rests_on_it_without_hunting() -> None:

@@ -39,8 +39,9 @@ guard_*                              present when the angle guard is on: theta_l
                                      theta_row, rate_row (4,), stopping_rad (M,);
                                      real time, when the look-ahead follows the measured
                                      lateness (absent in older logs: it does not):
-                                     lateness_steps (S, 5), lateness_allowance_ns and
-                                     lateness_hold_cycles (scalars)
+                                     lateness_steps (S, 5), lateness_allowance_ns,
+                                     lateness_hold_cycles and lateness_buckets (scalars;
+                                     the last absent in older logs: one worst kept)
 adapt_*                              present with the ball-gain adaptation: design_gamma,
                                      position_noise_m, confidence, min_ratio, max_ratio,
                                      period_s, until_cycle, back_emf_v_s_per_rad,
@@ -159,6 +160,8 @@ def encode_design(design: ControllerDesign) -> bytes:
             arrays["guard_lateness_steps"] = _f8(guard.lateness_steps)
             arrays["guard_lateness_allowance_ns"] = _f8(guard.lateness_allowance_ns)
             arrays["guard_lateness_hold_cycles"] = _f8(guard.lateness_hold_cycles)
+            if guard.lateness_buckets:
+                arrays["guard_lateness_buckets"] = _f8(1)
         if guard.soft is not None:
             soft = guard.soft
             arrays.update({f"soft_{name}": _f8(getattr(soft, name)) for name in _SOFT_SCALARS})
@@ -371,6 +374,7 @@ def _lateness_fields(arrays: Mapping[str, np.ndarray]) -> dict[str, Any]:
         "lateness_steps": tuple(tuple(float(v) for v in row) for row in steps),
         "lateness_allowance_ns": _count(arrays["guard_lateness_allowance_ns"]),
         "lateness_hold_cycles": _count(arrays["guard_lateness_hold_cycles"]),
+        "lateness_buckets": "guard_lateness_buckets" in arrays,
     }
 
 
