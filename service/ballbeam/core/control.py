@@ -97,8 +97,10 @@ class RestGains:
 
     def catch_terms(self, cycle: int) -> tuple[float, float]:
         """The catch's θ and θ̇ gains at ``cycle`` (0, 0 outside its window)."""
+        if self.catch_gain is None or cycle < self.from_cycle:
+            return 0.0, 0.0
         h = 1.0 - (cycle - self.from_cycle) / self.catch_cycles
-        if self.catch_gain is None or h <= 0.0 or cycle < self.from_cycle:
+        if h <= 0.0:
             return 0.0, 0.0
         return h * self.catch_gain[0], h * self.catch_gain[1]
 

@@ -287,22 +287,17 @@ class ControllerDaemon:
 
     def _fault_cycle(self) -> None:
         """No sensor frame for too long: 0 V, disabled, coast the observer on 0 V."""
-        # Samples that came but were read too late to be taken for now: the daemon itself is
-        # short of CPU, not the plant silent; the user should hear which.
-        late = self.intake.late_samples
-        starved = (
-            f" ({late} samples read too late to use so far: this process is short of CPU; "
-            "README: real-time scheduling)" if late else ""
-        )
         if not self.in_fault:
             self.in_fault = True
+            starved = self._starved_note()
             self._fault("sensor_timeout", f"no valid, current sensor frame for "
                         f"{self.cycles_since_sensor} periods; 0 V{starved}")
             log.error("sensor frames lost for %d periods: commanding 0 V%s",
                       self.cycles_since_sensor, starved)
         silent_s = self.cycles_since_sensor * self.period_ns * 1e-9
         if silent_s >= self.config.controller.plant_lost_s and not self.stop.is_set():
-            self._fault("plant_lost", f"no current sensor frame for {silent_s:.3f} s{starved}")
+            self._fault("plant_lost",
+                        f"no current sensor frame for {silent_s:.3f} s{self._starved_note()}")
             self._stats.end_reason = "plant_lost"
             self.stop.set("plant_lost")
         cycle = self.state.cycle
@@ -311,6 +306,15 @@ class ControllerDaemon:
         self.state = coast_cycles(self.design, self.state, 0.0, 1)
         self._stats.cycles += 1
         self._stats.fault_cycles += 1
+
+    def _starved_note(self) -> str:
+        """Samples that came but were read too late to be taken for now: the daemon itself is
+        short of CPU, not the plant silent; the user should hear which."""
+        late = self.intake.late_samples
+        if not late:
+            return ""
+        return (f" ({late} samples read too late to use so far: this process is short of CPU; "
+                "README: real-time scheduling)")
 
     def _watch_theta(self, theta_estimate_rad: float) -> None:
         outside = abs(theta_estimate_rad) > self.theta_limit_rad + 1e-9
