@@ -3,6 +3,14 @@
 Both children get the same config file and overrides (plus a private bus group when
 ``bus.isolate_runs``), so they agree on everything by construction. The run ends when the
 daemon exits; the emulator is then stopped with SIGTERM.
+
+Each child leads a session of its own. Where the kernel groups tasks by session (autogroup,
+``/proc/sys/kernel/sched_autogroup_enabled``), the fair scheduler then shares the CPUs between
+sessions first: a node that needs a third of a CPU is owed a whole group's share, however
+many busy processes the session it was started from runs, so its timer wakes it on time beside
+them. The terminal's signals no longer reach the children, so the launcher passes a stop
+(SIGINT, SIGTERM, or SIGHUP as SIGTERM) on to the daemon: it commands 0 V and finishes its log,
+the emulator follows, and the run is summarised as one stopped on request.
 """
 
 from __future__ import annotations
@@ -13,10 +21,12 @@ import secrets
 import signal
 import subprocess
 import sys
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from types import FrameType
 
 from mcap.writer import MCAP0_MAGIC
 
@@ -56,6 +66,36 @@ class LaunchResult:
 
 def _tail(text: str, lines: int = 8) -> str:
     return "\n".join(text.strip().splitlines()[-lines:])
+
+
+class _StopRequested(KeyboardInterrupt):
+    """SIGINT, SIGTERM or SIGHUP to the launcher while its run goes: passed on to the daemon
+    (a KeyboardInterrupt, so one that escapes ends the command as Ctrl-C does)."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        # The daemon stops on SIGINT and SIGTERM (runtime/stop.py); a hang-up is a SIGTERM.
+        self.forward = signal.SIGTERM if signum == signal.SIGHUP else signum
+
+
+@contextlib.contextmanager
+def _stop_requests_raise() -> Iterator[None]:
+    """While the run goes, a stop signal raises ``_StopRequested`` in the waiting launcher.
+    Main thread only (elsewhere the caller owns the signals)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def request_stop(signum: int, _frame: FrameType | None) -> None:
+        raise _StopRequested(signum)
+
+    numbers = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+    previous = {number: signal.signal(number, request_stop) for number in numbers}
+    try:
+        yield
+    finally:
+        for number, handler in previous.items():
+            signal.signal(number, handler)
 
 
 def _stop(process: subprocess.Popen[str]) -> int:
@@ -168,6 +208,7 @@ def launch_run(
                 fd for fd in (link_read, lock_fd, emulator_secret) if fd is not None
             ),
             env={**os.environ, PEER_LINK_ENV: str(link_read), **lock_env},
+            start_new_session=True,  # a scheduling group of its own (module docstring)
         )
         daemon = subprocess.Popen(
             [*base, "ballbeam", "daemon", *config_args, "--log", str(log_path), *live_args,
@@ -181,6 +222,7 @@ def launch_run(
             # Its end of the link also says when the run is over (the emulator then sends its
             # final counters, and the daemon records them).
             env={**os.environ, PEER_LINK_WRITE_ENV: str(link_write), **lock_env},
+            start_new_session=True,
         )
     finally:
         for fd in (link_read, link_write, lock_fd, emulator_secret, daemon_secret):
@@ -194,18 +236,26 @@ def launch_run(
         + (config.run.duration_s * (1.5 if config.run.mode == "realtime" else 20.0))
     )
     try:
-        try:
-            _, daemon_errors = daemon.communicate(timeout=budget_s)
-        except subprocess.TimeoutExpired:
-            daemon.send_signal(signal.SIGTERM)
-            _, daemon_errors = daemon.communicate(timeout=STOP_GRACE_S * 4)
-            raise RunFailedError(
-                f"the daemon did not finish within {budget_s:.0f} s and was stopped; "
-                f"its log: {log_path}"
-            ) from None
+        with _stop_requests_raise():
+            try:
+                _, daemon_errors = daemon.communicate(timeout=budget_s)
+            except _StopRequested as request:
+                # Stopped on request: the daemon commands 0 V, finishes its log and the run is
+                # summarised as usual (a second request while it does stops both at once).
+                daemon.send_signal(request.forward)
+                _, daemon_errors = daemon.communicate(timeout=STOP_GRACE_S * 4)
+            except subprocess.TimeoutExpired:
+                daemon.send_signal(signal.SIGTERM)
+                _, daemon_errors = daemon.communicate(timeout=STOP_GRACE_S * 4)
+                raise RunFailedError(
+                    f"the daemon did not finish within {budget_s:.0f} s and was stopped; "
+                    f"its log: {log_path}"
+                ) from None
     except BaseException:
-        _stop(emulator)
+        # The daemon first: it commands 0 V and finishes its log; the emulator, told by the
+        # peer link that the run is over, then sends its final counters.
         _stop(daemon)
+        _stop(emulator)
         raise
     emulator_exit = _stop(emulator)
     _, emulator_errors = emulator.communicate()
