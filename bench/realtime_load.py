@@ -6,10 +6,11 @@ and with two CPU-bound processes running, with the real-time scheduling the defa
     .venv/bin/python bench/realtime_load.py --duration 20
 
 Prints, per run: overruns, p99 and worst lateness, the largest |θ| of the plant's truth, the
-rest time (|x| <= 0.5 mm and |θ| <= 0.5° to the end) and the guard's latency allowance (what the
-daemon's probe measured before the run). The unprivileged runs drop every capability and the
-rtprio limit with ``setpriv``/``prlimit`` (util-linux) when the bench runs as root.
-The load processes are killed when each run ends (and cannot outlive the bench's timeout).
+rest time (|x| <= 0.5 mm and |θ| <= 0.5° to the end) and the worst lateness the daemon's probe
+measured before the run (the angle guard starts with it). The unprivileged runs drop every
+capability and the rtprio limit with ``setpriv``/``prlimit`` (util-linux) when the bench runs as
+root. The load processes share the bench's session (``--load-sessions own``: each its own) and
+are killed when each run ends (they cannot outlive the bench's timeout either).
 """
 
 from __future__ import annotations
@@ -33,9 +34,14 @@ HOG = "import time\nend = time.monotonic() + {limit}\nwhile time.monotonic() < e
 
 
 @contextlib.contextmanager
-def cpu_load(count: int, limit_s: float) -> Iterator[None]:
+def cpu_load(count: int, limit_s: float, own_sessions: bool = False) -> Iterator[None]:
+    """``count`` CPU-bound processes: in the bench's session (as from the same shell), or each
+    in a session of its own (as from separate terminals or services: under autogroup, each is
+    then a scheduling group as large as each of the run's nodes)."""
     hogs = [
-        subprocess.Popen([sys.executable, "-c", HOG.format(limit=limit_s)]) for _ in range(count)
+        subprocess.Popen([sys.executable, "-c", HOG.format(limit=limit_s)],
+                         start_new_session=own_sessions)
+        for _ in range(count)
     ]
     try:
         yield
@@ -78,7 +84,8 @@ def run_once(
         "rest_time_s": summary["rest_time_s"],
         "plant_missed_periods": summary.get("plant_missed_periods"),
         "scheduling": run.get("scheduling_realtime_priority"),
-        "guard_latency_us": run.get("scheduling_guard_latency_us"),
+        # What the probe measured before the run (older logs: the allowance it raised).
+        "probe_us": run.get("scheduling_lateness_probe_max_us"),
         "fair_slice": run.get("scheduling_fair_slice"),
         "late_samples": summary.get("late_samples"),
     }
@@ -91,6 +98,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="CPU-bound processes to run alongside, one run per value")
     parser.add_argument("--variant", choices=("all", "real-time", "unprivileged"), default="all")
     parser.add_argument("--repeat", type=int, default=1, help="runs per variant and load")
+    parser.add_argument("--load-sessions", choices=("shared", "own"), default="shared",
+                        help="the load processes in the bench's session (default), or each in "
+                        "a session of its own")
     parser.add_argument("--log-dir", type=Path, help="keep the runs' logs here (default: "
                         "a temporary directory, removed at the end)")
     parser.add_argument("--set", dest="overrides", action="append", default=[],
@@ -105,13 +115,13 @@ def main(argv: list[str] | None = None) -> int:
         tmp = args.log_dir or tmp_dir
         for load in args.loads:
             for name, prefix in [variant for variant in variants for _ in range(args.repeat)]:
-                with cpu_load(load, args.duration * 3 + 120):
+                with cpu_load(load, args.duration * 3 + 120, args.load_sessions == "own"):
                     row = run_once(prefix, args.duration, Path(tmp), args.overrides)
                 rows.append({"variant": name, "cpu_hogs": load, **row})
                 print(json.dumps(rows[-1]), flush=True)
     print()
     print(f"{'variant':<22}{'load':>5}{'overruns':>9}{'p99 µs':>9}{'max µs':>10}{'|θ| max':>9}"
-          f"{'rest s':>8}{'guard µs':>9}")
+          f"{'rest s':>8}{'probe µs':>9}")
     for row in rows:
         if "error" in row:
             print(f"{row['variant']:<22}{row['cpu_hogs']:>5}  failed: {row['error']}")
@@ -119,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
         rest = f"{row['rest_time_s']:.3f}" if row["rest_time_s"] is not None else "never"
         print(f"{row['variant']:<22}{row['cpu_hogs']:>5}{row['overruns']:>9}"
               f"{row['lateness_p99_us']:>9}{row['lateness_max_us']:>10}"
-              f"{row['max_abs_theta_deg']:>9}{rest:>8}{row['guard_latency_us'] or '-':>9}")
+              f"{row['max_abs_theta_deg']:>9}{rest:>8}{row['probe_us'] or '-':>9}")
     return 0
 
 

@@ -11,7 +11,7 @@ import pytest
 from scipy.integrate import solve_ivp
 
 from ballbeam.assembly import controller_design
-from ballbeam.config import load_config
+from ballbeam.config import Config, load_config
 from ballbeam.core.guard import (
     AngleGuard,
     LatenessWatch,
@@ -259,10 +259,7 @@ def test_the_soft_limit_is_an_encoder_level_and_the_servo_rests_on_it_without_hu
     ±0.3 V at 50 Hz (33 sign changes in 0.4 s on the bench, 38 in this loop). The limit now is
     the nearest level inside the hard barrier's limit; held there, the servo gets 0 V. Plant:
     the emulator's physics (dead zone, encoder), controller: the cycle, one period apart."""
-    from ballbeam.assembly import plant_parameters
-    from ballbeam.core.control import ControllerState, control_cycle
     from ballbeam.core.metrics import sign_changes
-    from ballbeam.core.plant import PlantPhysics, initial_noise, next_noise, read_sensors
 
     config = load_config(None, ["run.mode='realtime'", "plant.seed=0"])
     design = controller_design(config)
@@ -274,18 +271,7 @@ def test_the_soft_limit_is_an_encoder_level_and_the_servo_rests_on_it_without_hu
                       - config.controller.theta_guard_realtime_margin_deg)
     assert abs(configured_deg - soft_deg) <= step_deg / 2
     assert design.guard.soft.theta_limit_rad <= design.guard.theta_limit_rad
-    physics = PlantPhysics(plant_parameters(config))
-    rng = np.random.default_rng(0)
-    state = np.asarray(config.initial.state(), dtype=float)
-    noise = initial_noise(physics.params, rng)
-    controller, voltages, angles = ControllerState(), [], []
-    for _ in range(1600):
-        reading = read_sensors(physics.params, state, noise)
-        controller, output = control_cycle(design, controller, reading)
-        voltages.append(output.voltage_v)
-        angles.append(state[0])
-        state = physics.advance(state, output.voltage_v, config.plant.physics_substeps)
-        noise = next_noise(physics.params, noise, rng)
+    voltages, angles = closed_loop(config, 1600)
     arc = slice(1250, 1600)  # the second arc, at −θ_s
     assert np.max(np.abs(np.degrees(angles[arc]) + 51.6)) < 0.1  # on the arc throughout
     on_arc = np.asarray(voltages[arc])
@@ -293,3 +279,61 @@ def test_the_soft_limit_is_an_encoder_level_and_the_servo_rests_on_it_without_hu
     # the cycles; on the level, what is left is the tracker's own corrections, as offline.
     assert sign_changes(on_arc) <= 20
     assert np.mean(on_arc == 0.0) >= 0.5
+
+
+def closed_loop(config: Config, cycles: int) -> tuple[np.ndarray, np.ndarray]:
+    """The paper run's commands and true servo angles: the emulator's physics (dead zone,
+    encoder) under the controller's cycle, one period apart, from the state a run starts in."""
+    from ballbeam.assembly import plant_parameters
+    from ballbeam.core.control import control_cycle, starting_state
+    from ballbeam.core.plant import PlantPhysics, initial_noise, next_noise, read_sensors
+
+    design = controller_design(config)
+    physics = PlantPhysics(plant_parameters(config))
+    rng = np.random.default_rng(0)
+    state = np.asarray(config.initial.state(), dtype=float)
+    noise = initial_noise(physics.params, rng)
+    controller, voltages, angles = starting_state(design), [], []
+    for _ in range(cycles):
+        reading = read_sensors(physics.params, state, noise)
+        controller, output = control_cycle(design, controller, reading)
+        voltages.append(output.voltage_v)
+        angles.append(state[0])
+        state = physics.advance(state, output.voltage_v, config.plant.physics_substeps)
+        noise = next_noise(physics.params, noise, rng)
+    return np.asarray(voltages), np.asarray(angles)
+
+
+def test_the_lateness_measured_before_the_run_is_kept_as_long_as_one_measured_in_it() -> None:
+    """The daemon's probe measured 6 ms before the run. The watch starts with it (the first
+    swings brake that much earlier) and lets it go after two holds, as the longest it keeps a
+    lateness measured in the run. Kept for good (the allowance raised, the rule before), it made the
+    command hunt ±0.3 V on every later arc, and the rest dither."""
+    from ballbeam.core.control import starting_state
+    from ballbeam.core.metrics import sign_changes
+    from ballbeam.logs.design_record import decode_design, encode_design
+
+    paper = ["run.mode='realtime'", "plant.seed=0"]
+    config = load_config(None, [*paper, "controller.start_lateness_us=6000"])
+    design = controller_design(config)
+    assert design.guard is not None
+    watch = starting_state(design).lateness
+    assert watch.worst_ns == 6_000_000
+    assert lateness_step(design.guard, watch.worst_ns) is not None  # the look-ahead extended
+    hold = design.guard.lateness_hold_cycles
+    seen = []
+    for _ in range(2 * hold + 1):
+        watch = watch_lateness(design.guard, watch, 50_000)
+        seen.append(watch.worst_ns)
+    # It opens the first bucket, so it is kept two holds (1 s), then let go.
+    assert seen[2 * hold - 1] == 6_000_000 and seen[-1] == 50_000
+    recorded = decode_design(encode_design(design), "test").guard
+    assert recorded is not None and recorded.lateness_start_ns == 6_000_000
+    # The run's later arc (1.25–1.6 s, the watch long let go), against the old rule.
+    arc = slice(1250, 1600)
+    voltages, _ = closed_loop(config, 1600)
+    kept_for_good, _ = closed_loop(
+        load_config(None, [*paper, "controller.theta_guard_latency_us=7000"]), 1600
+    )
+    assert sign_changes(voltages[arc]) <= 20 and np.mean(voltages[arc] == 0.0) >= 0.5
+    assert sign_changes(kept_for_good[arc]) >= 2 * sign_changes(voltages[arc])

@@ -320,6 +320,7 @@ def _angle_guard(config: Config, model: LinearModel) -> AngleGuard:
         lateness_hold_cycles=(
             round(controller.guard_lateness_hold_s / controller.period_s) if realtime else 0
         ),
+        lateness_start_ns=controller.start_lateness_us * 1000,
     )
 
 

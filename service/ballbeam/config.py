@@ -289,8 +289,12 @@ class ControllerSection(_Section):
     )
     lateness_probe_s: float = Field(
         0.3, ge=0, le=10, description="real time: before the run, how long the daemon measures "
-        "its own lateness; if the worst exceeds theta_guard_latency_us, the guard's latency "
-        "allowance becomes it plus one period (0: no probe)"
+        "its own lateness; the worst becomes start_lateness_us (0: no probe)"
+    )
+    start_lateness_us: int = Field(
+        0, ge=0, le=100_000, description="real time: the lateness the angle guard starts the "
+        "run with, kept as margin as long as one measured in the run (guard_lateness_hold_s "
+        "to twice that), then let go; the daemon's probe sets it to what it measured"
     )
     guard_lateness_hold_s: float = Field(
         0.5, ge=0, le=60, description="real time: the angle guard looks ahead as far as the "
@@ -298,8 +302,8 @@ class ControllerSection(_Section):
         "this long after it was measured (0: a fixed look-ahead)"
     )
     max_guard_latency_us: int = Field(
-        30_000, ge=0, le=100_000, description="real time: the most the probe may raise the "
-        "guard's latency allowance to"
+        30_000, ge=0, le=100_000, description="real time: the most lateness the probe may "
+        "start the guard with"
     )
     theta_guard_brake_v: float | None = Field(
         None, gt=0, description="braking voltage the guard counts on; default V − dead zone"

@@ -27,6 +27,7 @@ from ballbeam.core.guard import (
     AngleGuard,
     LatenessWatch,
     guarded_voltage,
+    starting_watch,
     watch_lateness,
 )
 from ballbeam.core.model import Row4, as_row4
@@ -321,6 +322,11 @@ class ControllerState:
     noise_mean_square: float | None = None
     last_positions: tuple[float, ...] = ()
     lateness: LatenessWatch = NO_LATENESS  # real time: the loop's worst recent lateness
+
+
+def starting_state(design: ControllerDesign) -> ControllerState:
+    """The state a run starts in: nothing measured yet but the lateness before it."""
+    return ControllerState(lateness=starting_watch(design.guard))
 
 
 @dataclass(frozen=True)

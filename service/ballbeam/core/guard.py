@@ -94,6 +94,10 @@ class AngleGuard:
     # The watch's two buckets (see LatenessWatch); False: a log from before them, replayed
     # with the single worst it kept then.
     lateness_buckets: bool = True
+    # The lateness the loop measured just before the run (the daemon's probe): the watch starts
+    # with it as its first bucket's worst, so it is kept as margin as long as a lateness
+    # measured in the run, then let go (0: nothing measured; older logs).
+    lateness_start_ns: int = 0
 
 
 @dataclass(frozen=True)
@@ -116,6 +120,14 @@ class LatenessWatch:
 
 
 NO_LATENESS = LatenessWatch()
+
+
+def starting_watch(guard: AngleGuard | None) -> LatenessWatch:
+    """The watch a run starts with: the lateness measured before it, in its first bucket."""
+    if guard is None or not guard.lateness_steps or not guard.lateness_start_ns:
+        return NO_LATENESS
+    start_ns = guard.lateness_start_ns
+    return LatenessWatch(worst_ns=start_ns, age_cycles=0, bucket_ns=start_ns, previous_ns=0)
 
 
 def watch_lateness(
@@ -190,10 +202,11 @@ def make_angle_guard(
     soft: SoftCap | None = None,
     lateness_allowance_ns: int = 0,
     lateness_hold_cycles: int = 0,
+    lateness_start_ns: int = 0,
 ) -> AngleGuard:
     """The guard for a motor model (α, αβ), a braking voltage and a look-ahead (Ad, Bd);
     ``lateness_hold_cycles`` > 0: the look-ahead follows the measured lateness beyond
-    ``lateness_allowance_ns`` (real time)."""
+    ``lateness_allowance_ns`` (real time), starting from ``lateness_start_ns``."""
     top_rate = STOPPING_TABLE_SLEW_MULTIPLE * voltage_limit_v * alpha / alpha_beta
     count = math.ceil(top_rate / STOPPING_TABLE_STEP_RAD_S) + 1
     rates = np.arange(count) * STOPPING_TABLE_STEP_RAD_S
@@ -212,6 +225,7 @@ def make_angle_guard(
         lateness_steps=make_lateness_steps(alpha, alpha_beta) if lateness_hold_cycles else (),
         lateness_allowance_ns=lateness_allowance_ns if lateness_hold_cycles else 0,
         lateness_hold_cycles=lateness_hold_cycles,
+        lateness_start_ns=lateness_start_ns if lateness_hold_cycles else 0,
     )
 
 

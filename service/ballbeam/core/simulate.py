@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ballbeam.core.control import ControllerDesign, ControllerState, control_cycle
+from ballbeam.core.control import ControllerDesign, control_cycle, starting_state
 from ballbeam.core.plant import (
     PlantPhysics,
     SensorReading,
@@ -51,7 +51,7 @@ def simulate_closed_loop(
     params = physics.params
     state = np.asarray(initial_state, dtype=float)
     noise_m = initial_noise(params, rng)
-    controller = ControllerState()
+    controller = starting_state(design)
     columns: dict[str, list[object]] = {
         name: []
         for name in (

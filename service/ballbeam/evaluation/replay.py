@@ -18,7 +18,7 @@ import numpy as np
 
 from ballbeam.assembly import controller_design
 from ballbeam.config import Config, config_from_mapping
-from ballbeam.core.control import ControllerDesign, ControllerState, coast_cycles, control_cycle
+from ballbeam.core.control import ControllerDesign, coast_cycles, control_cycle, starting_state
 from ballbeam.core.plant import SensorReading
 from ballbeam.errors import BallbeamError, LogFormatError
 from ballbeam.evaluation.summary import check_layouts
@@ -76,7 +76,7 @@ def verify(run_log: RunLog) -> VerifyResult:
     if count and not (np.array_equal(sensor["cycle"][:count], command["cycle"][:count])):
         raise LogFormatError(f"{run_log.path}: /sensor and /command cycles do not line up")
     design, source, difference = _designs(run_log, config)
-    state = ControllerState()
+    state = starting_state(design)
     held_v = 0.0
     period_ns = round(design.period_s * 1e9)
     for index in range(count):

@@ -41,7 +41,9 @@ guard_*                              present when the angle guard is on: theta_l
                                      lateness (absent in older logs: it does not):
                                      lateness_steps (S, 5), lateness_allowance_ns,
                                      lateness_hold_cycles and lateness_buckets (scalars;
-                                     the last absent in older logs: one worst kept)
+                                     the last absent in older logs: one worst kept),
+                                     lateness_start_ns (scalar, where the probe measured
+                                     any: the watch's first worst)
 adapt_*                              present with the ball-gain adaptation: design_gamma,
                                      position_noise_m, confidence, min_ratio, max_ratio,
                                      period_s, until_cycle, back_emf_v_s_per_rad,
@@ -162,6 +164,8 @@ def encode_design(design: ControllerDesign) -> bytes:
             arrays["guard_lateness_hold_cycles"] = _f8(guard.lateness_hold_cycles)
             if guard.lateness_buckets:
                 arrays["guard_lateness_buckets"] = _f8(1)
+            if guard.lateness_start_ns:
+                arrays["guard_lateness_start_ns"] = _f8(guard.lateness_start_ns)
         if guard.soft is not None:
             soft = guard.soft
             arrays.update({f"soft_{name}": _f8(getattr(soft, name)) for name in _SOFT_SCALARS})
@@ -375,6 +379,9 @@ def _lateness_fields(arrays: Mapping[str, np.ndarray]) -> dict[str, Any]:
         "lateness_allowance_ns": _count(arrays["guard_lateness_allowance_ns"]),
         "lateness_hold_cycles": _count(arrays["guard_lateness_hold_cycles"]),
         "lateness_buckets": "guard_lateness_buckets" in arrays,
+        "lateness_start_ns": (
+            _count(arrays["guard_lateness_start_ns"]) if "guard_lateness_start_ns" in arrays else 0
+        ),
     }
 
 

@@ -20,10 +20,10 @@ from ballbeam.assembly import sensor_periods_per_cycle
 from ballbeam.config import Config
 from ballbeam.core.control import (
     ControllerDesign,
-    ControllerState,
     CycleOutput,
     coast_cycles,
     control_cycle,
+    starting_state,
 )
 from ballbeam.core.plant import SensorReading
 from ballbeam.errors import BallbeamError
@@ -148,7 +148,7 @@ class ControllerDaemon:
         )
         self.period_ns = config.controller.period_ns
         self.n_cycles = round(config.run.duration_s * config.controller.rate_hz)
-        self.state = ControllerState()
+        self.state = starting_state(design)
         self._stats = DaemonStats(authenticated=auth is not None)
         self.cycles_since_sensor = 0
         self.in_fault = False

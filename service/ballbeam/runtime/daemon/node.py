@@ -45,13 +45,18 @@ NO_SECRET = (
 
 
 def with_measured_latency(config: Config) -> tuple[Config, dict[str, str]]:
-    """The config with the angle guard's latency allowance raised to the lateness this process
-    measures now (its scheduling, this machine's load), and what was measured.
+    """The config with the lateness this process measures now (its scheduling, this machine's
+    load) as the angle guard's starting lateness, and what was measured.
 
-    The guard judges the servo's state the allowance ahead; a loop that runs late lets the
-    previous command act that much longer, so a guard that assumed less brakes too late (at
-    normal priority on a busy machine: 52.3° and more). Where real-time scheduling was granted
-    the probe finds well under the default 1 ms and nothing changes."""
+    The guard judges the servo's state a latency allowance ahead; a loop that runs late lets
+    the previous command act that much longer, so a guard that assumed less brakes too late (at
+    normal priority on a busy machine: 52.3° and more). In the run the guard keeps the worst
+    lateness of the last 0.5–1 s as margin (core/guard.py, LatenessWatch); the probe's is the
+    first it keeps, so the run's first swings are covered before the run has measured its
+    own. Only as long, then: a run that kept the probe's worst for good (it did, up to
+    2026-11) braked every later swing early too, and one stall while the emulator started
+    (7 ms, under load) cost it the rest time (1.82–1.93 s, not 1.776 s). Where real-time
+    scheduling was granted the probe finds well under the 1 ms allowance."""
     controller = config.controller
     if controller.lateness_probe_s <= 0:
         return config, {}
@@ -59,23 +64,19 @@ def with_measured_latency(config: Config) -> tuple[Config, dict[str, str]]:
         controller.period_ns, controller.lateness_probe_s,
         spin_ns_for_this_process(controller.spin_us),
     )
-    # The assumed allowance already covers a command landing up to that late; beyond it, the
-    # worst lateness seen plus the period the command then acts for.
-    worst_us, assumed_us = worst_ns // 1000, controller.theta_guard_latency_us
-    allowance_us = assumed_us
-    if worst_us > assumed_us:
-        allowance_us = max(assumed_us, min(worst_us + controller.period_ns // 1000,
-                                           controller.max_guard_latency_us))
-    probe = {"lateness_probe_max_us": str(worst_us), "guard_latency_us": str(allowance_us)}
-    if allowance_us != controller.theta_guard_latency_us:
+    start_us = min(worst_ns // 1000, controller.max_guard_latency_us)
+    probe = {"lateness_probe_max_us": str(worst_ns // 1000), "start_lateness_us": str(start_us)}
+    if start_us > controller.theta_guard_latency_us:
         log.warning(
-            "this process ran up to %.1f ms late before the run: the angle guard allows %.1f ms "
-            "of command latency (instead of %.1f ms) and brakes that much earlier",
-            worst_ns / 1e6, allowance_us / 1e3, controller.theta_guard_latency_us / 1e3,
+            "this process ran up to %.1f ms late before the run (the angle guard allows "
+            "%.1f ms): the guard starts the run braking that much earlier, and keeps any "
+            "lateness it measures for up to %.1f s",
+            worst_ns / 1e6, controller.theta_guard_latency_us / 1e3,
+            2 * controller.guard_lateness_hold_s,
         )
-        config = config.model_copy(update={
-            "controller": controller.model_copy(update={"theta_guard_latency_us": allowance_us})
-        })
+    config = config.model_copy(update={
+        "controller": controller.model_copy(update={"start_lateness_us": start_us})
+    })
     return config, probe
 
 
@@ -122,10 +123,10 @@ def _run_recorded(
         scheduling = apply_scheduling(
             controller.cpu, controller.realtime_priority, controller.fair_slice_us
         )
-        assumed_us = config.controller.theta_guard_latency_us
-        config, probe = with_measured_latency(config)
+        measured, probe = with_measured_latency(config)
         scheduling.update(probe)
-        if config.controller.theta_guard_latency_us != assumed_us:
+        if measured != config:
+            config = measured
             design = controller_design(config)  # recorded with the config that made it
     contract = FrameContract.load()
     resolved = json.dumps(config.model_dump(mode="json"), sort_keys=True)
