@@ -307,8 +307,7 @@ def closed_loop(config: Config, cycles: int) -> tuple[np.ndarray, np.ndarray]:
 def test_the_lateness_measured_before_the_run_is_kept_as_long_as_one_measured_in_it() -> None:
     """The daemon's probe measured 6 ms before the run. The watch starts with it (the first
     swings brake that much earlier) and lets it go after two holds, as the longest it keeps a
-    lateness measured in the run. Kept for good (the allowance raised, the rule before), it made the
-    command hunt ±0.3 V on every later arc, and the rest dither."""
+    lateness measured in the run (the rule before raised the allowance for the whole run)."""
     from ballbeam.core.control import starting_state
     from ballbeam.core.metrics import sign_changes
     from ballbeam.logs.design_record import decode_design, encode_design
@@ -329,11 +328,7 @@ def test_the_lateness_measured_before_the_run_is_kept_as_long_as_one_measured_in
     assert seen[2 * hold - 1] == 6_000_000 and seen[-1] == 50_000
     recorded = decode_design(encode_design(design), "test").guard
     assert recorded is not None and recorded.lateness_start_ns == 6_000_000
-    # The run's later arc (1.25–1.6 s, the watch long let go), against the old rule.
+    # The run's later arc (1.25–1.6 s, the watch long let go): held on 0 V, as without a probe.
     arc = slice(1250, 1600)
     voltages, _ = closed_loop(config, 1600)
-    kept_for_good, _ = closed_loop(
-        load_config(None, [*paper, "controller.theta_guard_latency_us=7000"]), 1600
-    )
     assert sign_changes(voltages[arc]) <= 20 and np.mean(voltages[arc] == 0.0) >= 0.5
-    assert sign_changes(kept_for_good[arc]) >= 2 * sign_changes(voltages[arc])
