@@ -80,3 +80,29 @@ def test_a_stopped_run_stops_its_nodes_at_0v_and_is_summarised(
     assert all(c.voltage_v == 0.0 and not c.enable for c in shutdown_frames(log))
     assert 1_000 < len(log.topics["/command"]) < 50_000  # it ran, and it stopped early
     assert processes_naming(str(tmp_path)) == []  # neither node outlived the launcher
+
+
+@pytest.mark.bus
+def test_a_killed_launcher_takes_its_nodes_with_it(tmp_path: Path) -> None:
+    """SIGKILL to the launcher, which then passes nothing on: the kernel tells the daemon
+    (its parent-death signal), which stops at 0 V and finishes its log; the emulator follows."""
+    launcher = subprocess.Popen(
+        ballbeam_argv("run", str(PAPER), "--set", "run.mode='realtime'",
+                      "--set", "run.duration_s=60", "--set", f"run.log_dir='{tmp_path}'"),
+        cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )
+    deadline = time.monotonic() + START_TIMEOUT_S
+    while not any(tmp_path.glob("*.mcap")) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    time.sleep(1.5)
+    launcher.kill()
+    launcher.wait()
+    gone_by = time.monotonic() + 30
+    while processes_naming(str(tmp_path)) and time.monotonic() < gone_by:
+        time.sleep(0.1)
+    assert processes_naming(str(tmp_path)) == []
+    (log_path,) = tmp_path.glob("*.mcap")
+    log = read_log(log_path)
+    assert not log.truncated, log.truncation_reason
+    assert summary_meta(log)["end_reason"] == "SIGTERM"
+    assert all(c.voltage_v == 0.0 and not c.enable for c in shutdown_frames(log))

@@ -28,6 +28,7 @@ from ballbeam.runtime.process import (
     git_revision,
     package_versions,
     settle_heap,
+    stop_with_parent,
 )
 from ballbeam.runtime.stop import StopFlag
 from ballbeam.runtime.ticker import spin_ns_for_this_process, worst_lateness_ns
@@ -170,6 +171,8 @@ def _run_recorded(
                 raise BusError(NO_SECRET.format(bus=config.bus.interface))
             auth = FrameAuthenticator(secret)
         link_fd = run_over_fd()  # `ballbeam run`'s peer link: the run's end is told through it
+        if link_fd is not None:
+            stop_with_parent()  # in a session of its own, no terminal signal reaches it
         peer_lock = OwnerLock.from_environment()  # held till death: the emulator hears of it
         if peer_lock is not None:
             peer_lock.hold()
