@@ -4,10 +4,13 @@ and with two CPU-bound processes running, with the real-time scheduling the defa
 
     .venv/bin/python bench/realtime_load.py                  # 4 runs of 60 s (about 5 minutes)
     .venv/bin/python bench/realtime_load.py --duration 20
+    .venv/bin/python bench/realtime_load.py --duration 6 --repeat 10 --variant unprivileged \
+        --arm default: --arm firm:tracker.rest_catch_theta_v_per_rad=160   # A/B, interleaved
 
 Prints, per run: overruns, p99 and worst lateness, the largest |θ| of the plant's truth, the
 rest time (|x| <= 0.5 mm and |θ| <= 0.5° to the end) and the worst lateness the daemon's probe
-measured before the run (the angle guard starts with it). The unprivileged runs drop every
+measured before the run (the angle guard starts with it); then, per variant (and arm) and load,
+how many runs kept |θ| <= 52.0° and rested within 10 ms of the quiet runs' median. The unprivileged runs drop every
 capability and the rtprio limit with ``setpriv``/``prlimit`` (util-linux) when the bench runs as
 root. The load processes share the bench's session (``--load-sessions own``: each its own) and
 are killed when each run ends (they cannot outlive the bench's timeout either).
@@ -17,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import itertools
 import json
 import shutil
 import statistics
@@ -106,6 +110,11 @@ def main(argv: list[str] | None = None) -> int:
                         "a temporary directory, removed at the end)")
     parser.add_argument("--set", dest="overrides", action="append", default=[],
                         metavar="KEY=VALUE", help="a config override for every run")
+    parser.add_argument("--arm", dest="arms", action="append", default=[],
+                        metavar="LABEL:KEY=VALUE[,KEY=VALUE]",
+                        help="compare config arms run by run, interleaved, so the machine's "
+                        "other load falls on every arm alike (repeatable; e.g. --arm default: "
+                        "--arm firm:tracker.rest_catch_theta_v_per_rad=160)")
     parser.add_argument("--reference-rest", type=float, metavar="S",
                         help="the quiet run's rest time to count on-time runs against (default: "
                         "the median of each variant's runs with no load)")
@@ -114,28 +123,44 @@ def main(argv: list[str] | None = None) -> int:
     variants = [("real-time scheduling", [])] if args.variant != "unprivileged" else []
     if unprivileged is not None and args.variant != "real-time":
         variants.append(("unprivileged", unprivileged))
+    arms = [parse_arm(text) for text in args.arms] or [("", [])]
     rows = []
     with tempfile.TemporaryDirectory() as tmp_dir:
         tmp = args.log_dir or tmp_dir
         for load in args.loads:
-            for name, prefix in [variant for variant in variants for _ in range(args.repeat)]:
+            # Run by run: each repeat takes every variant and arm once, so a quarter hour of a
+            # busier machine falls on all of them alike.
+            for _, (name, prefix), (label, arm) in itertools.product(
+                range(args.repeat), variants, arms
+            ):
                 with cpu_load(load, args.duration * 3 + 120, args.load_sessions == "own"):
-                    row = run_once(prefix, args.duration, Path(tmp), args.overrides)
-                rows.append({"variant": name, "cpu_hogs": load, **row})
+                    row = run_once(prefix, args.duration, Path(tmp), [*args.overrides, *arm])
+                variant = f"{name} [{label}]" if label else name
+                rows.append({"variant": variant, "cpu_hogs": load, **row})
                 print(json.dumps(rows[-1]), flush=True)
     print()
-    print(f"{'variant':<22}{'load':>5}{'overruns':>9}{'p99 µs':>9}{'max µs':>10}{'|θ| max':>9}"
+    width = max([22, *(len(row["variant"]) + 1 for row in rows)])
+    print(f"{'variant':<{width}}{'load':>5}{'overruns':>9}{'p99 µs':>9}{'max µs':>10}{'|θ| max':>9}"
           f"{'rest s':>8}{'probe µs':>9}")
     for row in rows:
         if "error" in row:
-            print(f"{row['variant']:<22}{row['cpu_hogs']:>5}  failed: {row['error']}")
+            print(f"{row['variant']:<{width}}{row['cpu_hogs']:>5}  failed: {row['error']}")
             continue
         rest = f"{row['rest_time_s']:.3f}" if row["rest_time_s"] is not None else "never"
-        print(f"{row['variant']:<22}{row['cpu_hogs']:>5}{row['overruns']:>9}"
+        print(f"{row['variant']:<{width}}{row['cpu_hogs']:>5}{row['overruns']:>9}"
               f"{row['lateness_p99_us']:>9}{row['lateness_max_us']:>10}"
               f"{row['max_abs_theta_deg']:>9}{rest:>8}{row['probe_us'] or '-':>9}")
     print_on_time(rows, args.reference_rest)
     return 0
+
+
+def parse_arm(text: str) -> tuple[str, list[str]]:
+    """``LABEL:KEY=VALUE[,KEY=VALUE]`` → the label and its overrides (none after the colon:
+    the defaults)."""
+    label, separator, overrides = text.partition(":")
+    if not separator or not label:
+        raise SystemExit(f"--arm {text!r}: expected LABEL:KEY=VALUE[,KEY=VALUE] (or LABEL:)")
+    return label, [item for item in overrides.split(",") if item]
 
 
 ON_TIME_S = 0.010  # issue 13: rest within 10 ms of the quiet run
