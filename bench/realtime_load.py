@@ -10,10 +10,11 @@ and with two CPU-bound processes running, with the real-time scheduling the defa
 Prints, per run: overruns, p99 and worst lateness, the largest |θ| of the plant's truth, the
 rest time (|x| <= 0.5 mm and |θ| <= 0.5° to the end) and the worst lateness the daemon's probe
 measured before the run (the angle guard starts with it); then, per variant (and arm) and load,
-how many runs kept |θ| <= 52.0° and rested within 10 ms of the quiet runs' median. The unprivileged runs drop every
-capability and the rtprio limit with ``setpriv``/``prlimit`` (util-linux) when the bench runs as
-root. The load processes share the bench's session (``--load-sessions own``: each its own) and
-are killed when each run ends (they cannot outlive the bench's timeout either).
+how many runs kept |θ| <= 52.0° and rested within 10 ms of the quiet runs' median. The
+unprivileged runs drop every capability and the rtprio limit with ``setpriv``/``prlimit``
+(util-linux) when the bench runs as root. The load processes share the bench's session
+(``--load-sessions own``: each its own) and are killed when each run ends (they cannot outlive
+the bench's timeout either).
 """
 
 from __future__ import annotations
