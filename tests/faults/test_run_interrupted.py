@@ -9,6 +9,7 @@ import json
 import os
 import signal
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -106,3 +107,24 @@ def test_a_killed_launcher_takes_its_nodes_with_it(tmp_path: Path) -> None:
     assert not log.truncated, log.truncation_reason
     assert summary_meta(log)["end_reason"] == "SIGTERM"
     assert all(c.voltage_v == 0.0 and not c.enable for c in shutdown_frames(log))
+
+
+def test_a_daemon_that_ignores_the_stop_is_killed_with_one_clear_error(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The launcher waits the grace for a stopped daemon, then kills it: one error that says
+    so, not a traceback from the expired wait."""
+    from ballbeam.runtime import launcher
+
+    monkeypatch.setattr(launcher, "STOP_GRACE_S", 0.1)
+    stubborn = subprocess.Popen(
+        [sys.executable, "-c", "import signal, time\n"
+         "signal.signal(signal.SIGTERM, signal.SIG_IGN)\nprint('ready', flush=True)\n"
+         "time.sleep(60)"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    assert stubborn.stdout is not None and stubborn.stdout.readline() == "ready\n"
+    with pytest.raises(launcher.RunFailedError, match="did not stop within 0 s of SIGTERM and "
+                       "was killed; it had written no log yet"):
+        launcher._stopped_daemon_errors(stubborn, signal.SIGTERM, tmp_path / "none.mcap")
+    assert stubborn.returncode == -signal.SIGKILL

@@ -98,6 +98,23 @@ def _stop_requests_raise() -> Iterator[None]:
             signal.signal(number, handler)
 
 
+def _stopped_daemon_errors(
+    daemon: subprocess.Popen[str], signum: int, log_path: Path
+) -> str:
+    """Send the daemon ``signum`` and wait for it to finish its log; what it wrote to stderr.
+    One that does not within the grace is killed, and its log made whole."""
+    daemon.send_signal(signum)
+    try:
+        return daemon.communicate(timeout=STOP_GRACE_S * 4)[1]
+    except subprocess.TimeoutExpired:
+        daemon.kill()
+        daemon.communicate()
+        raise RunFailedError(
+            f"the daemon did not stop within {STOP_GRACE_S * 4:.0f} s of "
+            f"{signal.Signals(signum).name} and was killed{_recover_cut_log(log_path)}"
+        ) from None
+
+
 def _stop(process: subprocess.Popen[str]) -> int:
     if process.poll() is None:
         process.send_signal(signal.SIGTERM)
@@ -242,11 +259,9 @@ def launch_run(
             except _StopRequested as request:
                 # Stopped on request: the daemon commands 0 V, finishes its log and the run is
                 # summarised as usual (a second request while it does stops both at once).
-                daemon.send_signal(request.forward)
-                _, daemon_errors = daemon.communicate(timeout=STOP_GRACE_S * 4)
+                daemon_errors = _stopped_daemon_errors(daemon, request.forward, log_path)
             except subprocess.TimeoutExpired:
-                daemon.send_signal(signal.SIGTERM)
-                _, daemon_errors = daemon.communicate(timeout=STOP_GRACE_S * 4)
+                _stopped_daemon_errors(daemon, signal.SIGTERM, log_path)
                 raise RunFailedError(
                     f"the daemon did not finish within {budget_s:.0f} s and was stopped; "
                     f"its log: {log_path}"
