@@ -6,6 +6,8 @@ and with two CPU-bound processes running, with the real-time scheduling the defa
     .venv/bin/python bench/realtime_load.py --duration 20
     .venv/bin/python bench/realtime_load.py --duration 6 --repeat 10 --variant unprivileged \
         --arm default: --arm firm:tracker.rest_catch_theta_v_per_rad=160   # A/B, interleaved
+    .venv/bin/python bench/realtime_load.py --duration 6 --repeat 16 --variant unprivileged \
+        --loads 2 --seed-per-run --reference-rest 1.776 --arm ... --arm ...  # noise seeds 1–16
 
 Prints, per run: overruns, p99 and worst lateness, the largest |θ| of the plant's truth, the
 rest time (|x| <= 0.5 mm and |θ| <= 0.5° to the end) and the worst lateness the daemon's probe
@@ -116,6 +118,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="compare config arms run by run, interleaved, so the machine's "
                         "other load falls on every arm alike (repeatable; e.g. --arm default: "
                         "--arm firm:tracker.rest_catch_theta_v_per_rad=160)")
+    parser.add_argument("--seed-per-run", action="store_true",
+                        help="repeat N uses plant.seed=N (every arm and variant the same seed): "
+                        "the runs sample the plant's noise too, not only the machine's load")
     parser.add_argument("--reference-rest", type=float, metavar="S",
                         help="the quiet run's rest time to count on-time runs against (default: "
                         "the median of each variant's runs with no load)")
@@ -131,11 +136,14 @@ def main(argv: list[str] | None = None) -> int:
         for load in args.loads:
             # Run by run: each repeat takes every variant and arm once, so a quarter hour of a
             # busier machine falls on all of them alike.
-            for _, (name, prefix), (label, arm) in itertools.product(
+            for repeat, (name, prefix), (label, arm) in itertools.product(
                 range(args.repeat), variants, arms
             ):
+                seed = [f"plant.seed={repeat + 1}"] if args.seed_per_run else []
                 with cpu_load(load, args.duration * 3 + 120, args.load_sessions == "own"):
-                    row = run_once(prefix, args.duration, Path(tmp), [*args.overrides, *arm])
+                    row = run_once(
+                        prefix, args.duration, Path(tmp), [*args.overrides, *seed, *arm]
+                    )
                 variant = f"{name} [{label}]" if label else name
                 rows.append({"variant": variant, "cpu_hogs": load, **row})
                 print(json.dumps(rows[-1]), flush=True)

@@ -16,16 +16,19 @@ from ballbeam.assembly import run_offline
 from ballbeam.config import Config, load_config
 from ballbeam.evaluation import replay
 from ballbeam.evaluation.summary import plant_missed_periods, summarise
+from ballbeam.logs import design_record
 from ballbeam.logs.reader import read_log
 from ballbeam.logs.recorder import Recorder
 from ballbeam.logs.recording import RunRecording
 from ballbeam.protocol.frames import (
     SENSOR_ID,
+    VOLTAGE_COMMAND_ID,
     FrameContract,
     SensorFrame,
     TruthAngle,
     TruthBall,
     VoltageCommand,
+    encode_lookahead,
 )
 from ballbeam.protocol.secoc import FrameAuthenticator
 from ballbeam.runtime.daemon.command_out import CommandOut
@@ -211,23 +214,30 @@ def test_command_out_counts_resends_and_shuts_down_at_zero(recording: RunRecordi
     assert out.resends == 1
 
 
-def test_the_whole_daemon_in_process_runs_like_the_offline_loop(tmp_path: Path) -> None:
-    config = virtual_config(1.5)
+def run_in_process(config: Config, log_path: Path) -> str:
+    """Daemon and emulator of one authenticated run, the emulator in a thread (real time or
+    lock-step as ``config`` says); returns the daemon's end reason."""
     stop_plant = StopFlag()
     plant_bus = can.Bus(interface="virtual", channel=config.bus.channel)
-    assert config.bus.authenticated  # the virtual bus: SecOC-style frames by default
     secret = secrets.token_bytes(32)
     emulator = PlantEmulator(config, plant_bus, CONTRACT, auth=FrameAuthenticator(secret))
-    plant = threading.Thread(target=emulator.run_lockstep, args=(stop_plant,), daemon=True)
+    target = emulator.run_realtime if config.run.mode == "realtime" else emulator.run_lockstep
+    plant = threading.Thread(target=target, args=(stop_plant,), daemon=True)
     plant.start()
-    log_path = tmp_path / "run.mcap"
     try:
-        end_reason = run_daemon(config, log_path, None, secret=secret)
+        return run_daemon(config, log_path, None, secret=secret)
     finally:
         stop_plant.set()
         plant.join(timeout=10)
         emulator.stop()
         plant_bus.shutdown()
+
+
+def test_the_whole_daemon_in_process_runs_like_the_offline_loop(tmp_path: Path) -> None:
+    config = virtual_config(1.5)
+    assert config.bus.authenticated  # the virtual bus: SecOC-style frames by default
+    log_path = tmp_path / "run.mcap"
+    end_reason = run_in_process(config, log_path)
     run_log = read_log(log_path)
     summary = summarise(run_log)
     assert end_reason == summary["end_reason"] == "completed" and summary["cycles"] == 1500
@@ -261,7 +271,7 @@ def test_after_a_watchdog_trip_the_plant_obeys_a_restarted_daemon_at_once() -> N
         emulator._check_watchdog(now_ns=40_000_000 + emulator.watchdog_ns + 1)
         assert emulator.watchdog_zeroed and emulator.voltage_v == 0.0
         restarted = emulator._accept_command(framed(VoltageCommand(0, 1.0, True, 0)))
-        assert restarted is not None and restarted.voltage_v == 1.0
+        assert restarted is not None and restarted[0].voltage_v == 1.0
     finally:
         emulator.stop()
         bus.shutdown()
@@ -363,3 +373,99 @@ def test_truth_carries_the_plants_own_sample_clock(tmp_path: Path) -> None:
     assert list(truth.values["sample_index"]) == [254, 255, 256, 259, 260]
     assert list(truth.values["plant_time_s"]) == pytest.approx([0.254, 0.255, 0.256, 0.259, 0.26])
     assert plant_missed_periods(run_log) == 2
+
+
+def test_the_plant_drives_the_lookahead_of_a_command_while_no_newer_one_comes() -> None:
+    """Real time, authenticated: a command that comes in period 0 carrying the commands for
+    the next three drives 1 V up to the next sample instant, then 2, 3 and 4 V from each
+    sample instant on, and 4 V beyond (its last word held). The physics is exactly the
+    plant's at those voltages, switched at the instants. A newer command replaces the
+    look-ahead; a stop (disabled) clears it, and so does the watchdog."""
+    config = virtual_config(1.0, "run.mode='realtime'")
+    bus = can.Bus(interface="virtual", channel=config.bus.channel)
+    secret = secrets.token_bytes(32)
+    sender = FrameAuthenticator(secret)
+    emulator = PlantEmulator(config, bus, CONTRACT, auth=FrameAuthenticator(secret))
+
+    def command(counter: int, voltage_v: float, lookahead_v: tuple[float, ...],
+                enable: bool = True) -> can.Message:
+        _, data = CONTRACT.encode(VoltageCommand(counter, voltage_v, enable, 0))
+        extension = encode_lookahead(lookahead_v) if lookahead_v else b""
+        return can.Message(
+            arbitration_id=VOLTAGE_COMMAND_ID, is_extended_id=False, is_fd=True,
+            data=sender.protect(VOLTAGE_COMMAND_ID, data, extension),
+        )
+
+    period_ns = emulator.sensor_period_ns
+    try:
+        emulator.realtime = True
+        emulator.next_boundary_ns, emulator.next_boundary_index = 0, 0
+        physics_ns = emulator._advance_until(0, 0)  # sample 0's instant
+        accepted = emulator._accept_command(command(0, 1.0, (2.0, 3.0, 4.0)))
+        assert accepted is not None and accepted[1] == (2.0, 3.0, 4.0)
+        start = emulator.state.copy()
+        emulator._apply(*accepted, now_ns=0)
+        driven = []
+        for k in range(5):
+            physics_ns = emulator._advance_until(physics_ns, k * period_ns + period_ns // 2)
+            driven.append(emulator.voltage_v)
+        assert driven == [1.0, 2.0, 3.0, 4.0, 4.0]
+        expected, half = start, (period_ns // 2) // emulator.substep_ns
+        for voltage_v, steps in ((1.0, emulator.substeps), (2.0, emulator.substeps),
+                                 (3.0, emulator.substeps), (4.0, emulator.substeps), (4.0, half)):
+            expected = emulator.physics.advance(expected, voltage_v, steps)
+        assert np.allclose(emulator.state, expected, rtol=0, atol=1e-12)
+        newer = emulator._accept_command(command(1, -1.0, (-2.0,)))  # in period 4
+        assert newer is not None
+        emulator._apply(*newer, now_ns=physics_ns)
+        assert emulator.voltage_v == -1.0
+        physics_ns = emulator._advance_until(physics_ns, 6 * period_ns + period_ns // 2)
+        assert emulator.voltage_v == -2.0  # periods 5 and 6: its one entry, then held
+        stopped = emulator._accept_command(command(2, 0.0, (), enable=False))
+        assert stopped is not None
+        emulator._apply(*stopped, now_ns=physics_ns)
+        physics_ns = emulator._advance_until(physics_ns, 8 * period_ns)
+        assert emulator.voltage_v == 0.0 and emulator.lookahead_v == ()
+        again = emulator._accept_command(command(3, 1.0, (2.0, 3.0)))
+        assert again is not None
+        emulator._apply(*again, now_ns=physics_ns)
+        emulator._check_watchdog(now_ns=physics_ns + emulator.watchdog_ns + 1)
+        emulator._advance_until(physics_ns, 11 * period_ns)
+        assert emulator.voltage_v == 0.0 and emulator.lookahead_v == ()
+    finally:
+        emulator.stop()
+        bus.shutdown()
+
+
+def test_a_real_time_run_that_overran_replays_bit_for_bit_with_its_lookahead(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Daemon and emulator in real time (threads, virtual bus); the daemon stalls 6 ms at
+    three points of the plan. Its commands carried a look-ahead, and after each stall it
+    coasted on the commands the plant drove meanwhile: replay --verify, which recomputes
+    that look-ahead from the log, gets every voltage bit for bit."""
+    from ballbeam.runtime.ticker import Ticker
+
+    class StallingTicker(Ticker):
+        def wait(self) -> Tick:
+            tick = super().wait()
+            if tick.cycle in (600, 1200, 1700):
+                time.sleep(0.006)
+            return tick
+
+    monkeypatch.setattr("ballbeam.runtime.daemon.loop.Ticker", StallingTicker)
+    config = virtual_config(
+        2.0, "run.mode='realtime'", "controller.realtime_priority=0", "controller.cpu=-1",
+        "plant.cpu=-1", "plant.realtime_priority=0",
+    )
+    log_path = tmp_path / "run.mcap"
+    run_in_process(config, log_path)
+    run_log = read_log(log_path)
+    skipped = run_log.topics["/timing"].values["skipped"]
+    assert int(skipped.sum()) >= 3
+    result = replay.verify(run_log)
+    assert result.ok and result.design_source == "recorded"
+    decoded = design_record.decode_design(
+        run_log.attachments[design_record.ATTACHMENT_NAME], "test"
+    )
+    assert decoded.lookahead_periods == 20

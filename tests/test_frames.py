@@ -8,7 +8,9 @@ only appears as a second opinion that our fast path produces its exact bytes.
 from __future__ import annotations
 
 import dataclasses
+import math
 import random
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -670,3 +672,32 @@ def test_counter_unwrap_follows_wraps_gaps_and_old_frames() -> None:
     assert [unwrap.index(counter) for counter in heard] == [
         250, 251, 255, 256, 257, 259, 258, 386
     ]
+
+
+def test_a_lookahead_round_trips_at_1_mv_and_refuses_what_the_contract_cannot_carry() -> None:
+    from ballbeam.protocol.frames import (
+        LOOKAHEAD_SLOTS,
+        NO_LOOKAHEAD_RAW,
+        decode_lookahead,
+        encode_lookahead,
+    )
+
+    voltages = (4.5504, -4.5496, 0.0, 32.767, -32.767)
+    encoded = encode_lookahead(voltages)
+    assert len(encoded) == 2 * LOOKAHEAD_SLOTS
+    raws = struct.unpack(f"<{LOOKAHEAD_SLOTS}h", encoded)
+    assert raws[:5] == (4550, -4550, 0, 32767, -32767)
+    assert set(raws[5:]) == {NO_LOOKAHEAD_RAW}
+    assert decode_lookahead(encoded) == (4.55, -4.55, 0.0, 32.767, -32.767)
+    assert decode_lookahead(encode_lookahead(())) == ()
+    for bad in ((math.nan,), (32.768,), (0.0,) * (LOOKAHEAD_SLOTS + 1)):
+        with pytest.raises(FrameRejectedError) as refused:
+            encode_lookahead(bad)
+        assert refused.value.reason == "range"
+    gap = bytearray(encode_lookahead((1.0, 2.0)))
+    gap[0:2] = NO_LOOKAHEAD_RAW.to_bytes(2, "little", signed=True)  # empty, then a value
+    with pytest.raises(FrameRejectedError, match="gap"):
+        decode_lookahead(bytes(gap))
+    with pytest.raises(FrameRejectedError) as short:
+        decode_lookahead(encoded[:-1])
+    assert short.value.reason == "length"

@@ -253,7 +253,7 @@ def test_the_lateness_watch_never_forgets_a_lateness_of_its_hold() -> None:
 
 
 def test_the_soft_limit_is_an_encoder_level_and_the_servo_rests_on_it_without_hunting() -> None:
-    """Real time, paper run: the soft limit (52° less its margins, 51.65°) lay between the
+    """Real time, paper run: the soft limit (52° less its margins, then 51.65°) lay between the
     encoder levels 51.596° and 51.684°. On the second limit arc the tracker pushes outward,
     the cap pushed back at the outer level and let go at the inner one, and the command hunted
     ±0.3 V at 50 Hz (33 sign changes in 0.4 s on the bench, 38 in this loop). The limit now is
@@ -266,19 +266,23 @@ def test_the_soft_limit_is_an_encoder_level_and_the_servo_rests_on_it_without_hu
     assert design.guard is not None and design.guard.soft is not None
     step_deg = math.degrees(config.sensors.encoder_step_rad)
     soft_deg = math.degrees(design.guard.soft.theta_limit_rad)
-    assert soft_deg / step_deg == pytest.approx(588, abs=1e-9)  # 51.680°
+    assert soft_deg / step_deg == pytest.approx(590, abs=1e-9)  # 51.855°
     configured_deg = (config.limits.theta_deg - config.controller.soft_guard_margin_deg
                       - config.controller.theta_guard_realtime_margin_deg)
     assert abs(configured_deg - soft_deg) <= step_deg / 2
     assert design.guard.soft.theta_limit_rad <= design.guard.theta_limit_rad
     voltages, angles = closed_loop(config, 1600)
     arc = slice(1250, 1600)  # the second arc, at −θ_s
-    assert np.max(np.abs(np.degrees(angles[arc]) + 51.6)) < 0.1  # on the arc throughout
+    on_arc_deg = -np.degrees(angles[arc])
+    # On the arc throughout, between the path's 51.5° and the soft limit's level.
+    assert np.all((on_arc_deg > 51.4) & (on_arc_deg <= soft_deg + step_deg / 2))
     on_arc = np.asarray(voltages[arc])
     # Unsnapped, this loop makes 38 sign changes here and sends exactly 0 V in under a tenth of
-    # the cycles; on the level, what is left is the tracker's own corrections, as offline.
+    # the cycles; on the level, what is left is the tracker's own corrections, as offline
+    # (with the 0.1° real-time margin it uses the room up to 51.82° to pull the ball back:
+    # 16 sign changes and 0 V in 45 % of the cycles, against 14 and 71 % held at 51.65°).
     assert sign_changes(on_arc) <= 20
-    assert np.mean(on_arc == 0.0) >= 0.5
+    assert np.mean(on_arc == 0.0) >= 0.4
 
 
 def closed_loop(config: Config, cycles: int) -> tuple[np.ndarray, np.ndarray]:
@@ -328,7 +332,8 @@ def test_the_lateness_measured_before_the_run_is_kept_as_long_as_one_measured_in
     assert seen[2 * hold - 1] == 6_000_000 and seen[-1] == 50_000
     recorded = decode_design(encode_design(design), "test").guard
     assert recorded is not None and recorded.lateness_start_ns == 6_000_000
-    # The run's later arc (1.25–1.6 s, the watch long let go): held on 0 V, as without a probe.
+    # The run's later arc (1.25–1.6 s, the watch long let go): no hunting, as without a probe
+    # (the bounds of the test above).
     arc = slice(1250, 1600)
     voltages, _ = closed_loop(config, 1600)
-    assert sign_changes(voltages[arc]) <= 20 and np.mean(voltages[arc] == 0.0) >= 0.5
+    assert sign_changes(voltages[arc]) <= 20 and np.mean(voltages[arc] == 0.0) >= 0.4

@@ -221,3 +221,10 @@ def test_a_real_time_design_records_its_lateness_look_ahead() -> None:
     assert design.guard is not None and design.guard.lateness_steps
     decoded = design_record.decode_design(design_record.encode_design(design), "test")
     assert decoded.guard == design.guard
+    # And how far its commands looked ahead; a log from before (no such array): none.
+    assert design.lookahead_periods == decoded.lookahead_periods == 20
+    arrays = dict(np.load(io.BytesIO(design_record.encode_design(design))))
+    del arrays["lookahead_periods"]
+    older = io.BytesIO()
+    np.savez_compressed(older, **arrays)
+    assert design_record.decode_design(older.getvalue(), "older").lookahead_periods == 0

@@ -6,6 +6,12 @@ Lock-step: one control period per valid command answering the latest sample; wit
 the sample is sent again, so a lost frame costs time, never determinism.
 Either way a watchdog zeroes the voltage when valid commands stop.
 
+Real time, a command may carry a look-ahead (the controller's commands for the periods after
+its own, protocol/secoc.py): while no newer command comes, the plant drives its first entry
+from the next sample instant on, the second from the one after, and so on, the last held
+beyond; so a controller that misses periods is followed as it planned instead of by its last
+command held.
+
 With an authenticator (``bus.authenticate``) every frame sent is a SecOC-style CAN FD frame
 and only commands with a right MAC and a fresh freshness value are obeyed (protocol/secoc.py);
 the freshness, not the 8-bit counter, then orders the commands (across daemon restarts too).
@@ -42,9 +48,10 @@ from ballbeam.protocol.frames import (
     CounterCheck,
     FrameContract,
     VoltageCommand,
+    decode_lookahead,
     next_counter,
 )
-from ballbeam.protocol.secoc import CLASSIC_LENGTH, FrameAuthenticator
+from ballbeam.protocol.secoc import CLASSIC_LENGTH, FrameAuthenticator, extension_of
 from ballbeam.runtime.bus import recv_frame
 from ballbeam.runtime.peer_link import PeerLink
 from ballbeam.runtime.stop import StopFlag
@@ -113,6 +120,13 @@ class PlantEmulator:
         self.started = not config.plant.hold_until_enabled
         self.voltage_v = 0.0
         self.counter = 0
+        # Real time: when the next sample period starts and its index, and the latest
+        # command's look-ahead with the index of the period its first entry is for.
+        self.realtime = False
+        self.next_boundary_ns = 0
+        self.next_boundary_index = 0
+        self.lookahead_v: tuple[float, ...] = ()
+        self.lookahead_from = 0
         self.command_check = CounterCheck()
         self.counters = EmulatorCounters()
         self.watchdog_ns = int(config.plant.watchdog_ms * 1e6)
@@ -195,8 +209,10 @@ class PlantEmulator:
     def _count_malformed(self, _detail: str) -> None:
         self.counters.rejected += 1
 
-    def _accept_command(self, message: can.Message) -> VoltageCommand | None:
-        """A valid, fresh command frame, or None (counted)."""
+    def _accept_command(
+        self, message: can.Message
+    ) -> tuple[VoltageCommand, tuple[float, ...]] | None:
+        """A valid, fresh command frame and its look-ahead, or None (counted)."""
         if (
             message.arbitration_id != VOLTAGE_COMMAND_ID
             or message.is_extended_id  # the contract is on standard-id data frames only
@@ -206,6 +222,7 @@ class PlantEmulator:
             self.counters.own_or_foreign += 1
             return None
         data = bytes(message.data)
+        extension = b""
         if self.auth is not None:
             # Before the contract and the counter: a refused frame moves no state.
             verdict = self.auth.verify(VOLTAGE_COMMAND_ID, data)
@@ -213,9 +230,11 @@ class PlantEmulator:
                 setattr(self.counters, verdict, getattr(self.counters, verdict) + 1)
                 self.counters.rejected += 1
                 return None
+            extension = extension_of(data)
             data = data[:CLASSIC_LENGTH]
         try:
             command = self.contract.decode(message.arbitration_id, data)
+            lookahead_v = decode_lookahead(extension) if extension else ()
         except FrameError:
             self.counters.rejected += 1
             return None
@@ -229,35 +248,57 @@ class PlantEmulator:
         if self.auth is None and self.command_check.classify(command.counter) != "ok":
             self.counters.rejected += 1
             return None
-        return command
+        return command, lookahead_v
 
     def _take_command(self, message: can.Message, physics_ns: int, limit_ns: int) -> int:
         """Real time: judge ``message``; a valid command acts on the physics from the moment it
         reached this host (the kernel's receive stamp, not when this process got to it), at
         most up to ``limit_ns``. Returns the physics' new time."""
-        command = self._accept_command(message)
-        if command is None:
+        accepted = self._accept_command(message)
+        if accepted is None:
             return physics_ns
         now_ns = time.monotonic_ns()
         arrived_ns = min(max(arrival_ns(message, now_ns), physics_ns), now_ns)
-        due = (min(arrived_ns, limit_ns) - physics_ns) // self.substep_ns
-        self._advance(due)
-        self._apply(command, arrived_ns)
-        return physics_ns + max(due, 0) * self.substep_ns
+        physics_ns = self._advance_until(physics_ns, min(arrived_ns, limit_ns))
+        self._apply(*accepted, now_ns=arrived_ns)
+        return physics_ns
 
-    def _apply(self, command: VoltageCommand, now_ns: int) -> None:
+    def _apply(
+        self, command: VoltageCommand, lookahead_v: tuple[float, ...] = (), *, now_ns: int
+    ) -> None:
         self.last_command_ns = now_ns
         self.watchdog_zeroed = False
         self.voltage_v = command.voltage_v if command.enable else 0.0
+        # Its first entry is for the period after the one it came in (the controller's next).
+        self.lookahead_v = lookahead_v if command.enable and self.realtime else ()
+        self.lookahead_from = self.next_boundary_index
         if command.enable:
             self.started = True
         self.counters.commands_applied += 1
+
+    def _advance_until(self, physics_ns: int, until_ns: int) -> int:
+        """Real time: advance the physics from ``physics_ns`` to ``until_ns`` (whole
+        substeps); each sample period begun on the way starts on the latest command's
+        look-ahead for it, if any. Returns the physics' new time."""
+        while self.realtime and self.next_boundary_ns <= until_ns:
+            due = (self.next_boundary_ns - physics_ns) // self.substep_ns
+            self._advance(due)
+            physics_ns += max(due, 0) * self.substep_ns
+            ahead = self.next_boundary_index - self.lookahead_from
+            if self.lookahead_v and not self.watchdog_zeroed and ahead >= 0:
+                self.voltage_v = self.lookahead_v[min(ahead, len(self.lookahead_v) - 1)]
+            self.next_boundary_ns += self.sensor_period_ns
+            self.next_boundary_index += 1
+        due = (until_ns - physics_ns) // self.substep_ns
+        self._advance(due)
+        return physics_ns + max(due, 0) * self.substep_ns
 
     def _check_watchdog(self, now_ns: int) -> None:
         if self.last_command_ns is None or self.watchdog_zeroed:
             return
         if now_ns - self.last_command_ns > self.watchdog_ns:
             self.voltage_v = 0.0
+            self.lookahead_v = ()
             self.watchdog_zeroed = True
             self.counters.watchdog_trips += 1
             # The commander went silent: whoever commands next (a restarted daemon counts from
@@ -275,6 +316,7 @@ class PlantEmulator:
         state = self.peer_link.state()
         if state == "run_over" and not stop.is_set():
             self.voltage_v = 0.0
+            self.lookahead_v = ()
             stop.set("run_over")
             log.info("the daemon's run is over: stopping")
             return
@@ -282,6 +324,7 @@ class PlantEmulator:
         if state != "gone" or self.counters.peer_lost:
             return
         self.voltage_v = 0.0
+        self.lookahead_v = ()
         self.watchdog_zeroed = True
         self.counters.peer_lost += 1
         self.command_check.reset()
@@ -292,14 +335,16 @@ class PlantEmulator:
         """The daemon's last frames, already on the bus when it said the run is over (its last
         command, its stop commands): judged and counted as usual; nothing advances any more."""
         while message is not None:
-            command = self._accept_command(message)
-            if command is not None:
+            accepted = self._accept_command(message)
+            if accepted is not None:
+                command = accepted[0]
                 if lockstep and command.enable and command.sensor_counter != self.counter:
                     self.counters.rejected += 1  # answers an older sample: stale
                 else:
-                    self._apply(command, time.monotonic_ns())
+                    self._apply(command, now_ns=time.monotonic_ns())
             message = self._recv(0.0)
         self.voltage_v = 0.0
+        self.lookahead_v = ()
 
     def _advance(self, substeps: int) -> None:
         if self.started and substeps > 0:
@@ -320,20 +365,21 @@ class PlantEmulator:
                 self._take_last_commands(message, lockstep=True)
                 break
             self._check_watchdog(now_ns)
-            if message is None or (command := self._accept_command(message)) is None:
+            if message is None or (accepted := self._accept_command(message)) is None:
                 if time.monotonic() - last_sent >= resend_s:
                     self._resend()
                     last_sent = time.monotonic()
                 continue
+            command = accepted[0]  # lock-step waits for every command: no look-ahead
             if command.sensor_counter != self.counter:
                 if not command.enable:
                     # A stop (0 V, disabled) is obeyed whatever sample it answers; the plant
                     # does not advance on it.
-                    self._apply(command, now_ns)
+                    self._apply(command, now_ns=now_ns)
                     continue
                 self.counters.rejected += 1  # answers an older sample: stale
                 continue
-            self._apply(command, now_ns)
+            self._apply(command, now_ns=now_ns)
             for _ in range(self.sensor_periods_per_command):
                 self._advance(self.substeps)
                 self.noise_m = next_noise(self.physics.params, self.noise_m, self.rng)
@@ -351,6 +397,8 @@ class PlantEmulator:
         spin_ns = spin_ns_for_this_process(self.config.controller.spin_us)
         ticker = Ticker(self.sensor_period_ns, spin_ns=spin_ns)
         physics_ns = ticker.origin_ns
+        self.realtime = True
+        self.next_boundary_ns, self.next_boundary_index = ticker.origin_ns, 0
         tick = ticker.wait()
         while not stop.is_set():
             self._check_peer(stop)
@@ -367,9 +415,7 @@ class PlantEmulator:
             ):
                 physics_ns = self._take_command(message, physics_ns, tick.deadline_ns)
             # Advance to the deadline, then sample: the sensor reads the state at t_k.
-            due = (tick.deadline_ns - physics_ns) // self.substep_ns
-            self._advance(due)
-            physics_ns += due * self.substep_ns
+            physics_ns = self._advance_until(physics_ns, tick.deadline_ns)
             # The counter counts sample periods, not frames: periods this process overran
             # (never sampled, never sent) are a visible gap to every receiver.
             for _ in range(tick.skipped):
@@ -393,3 +439,4 @@ class PlantEmulator:
     def stop(self) -> None:
         """Leave the plant safe: zero volts."""
         self.voltage_v = 0.0
+        self.lookahead_v = ()

@@ -195,6 +195,11 @@ def controller_design(config: Config, plan: Plan | None = None) -> ControllerDes
         initial_state=as_row4(initial),
         angle_per_count=constants.angle_sensor_gain * encoder_step_rad,
         position_per_count=constants.position_sensor_gain * adc_step_m,
+        # Only a real-time run on the authenticated bus sends it (its 64-byte CAN FD frames).
+        lookahead_periods=(
+            config.controller.lookahead_periods
+            if config.run.mode == "realtime" and config.bus.authenticated else 0
+        ),
     )
 
 

@@ -309,12 +309,13 @@ class ControllerSection(_Section):
         None, gt=0, description="braking voltage the guard counts on; default V − dead zone"
     )
     theta_guard_realtime_margin_deg: float = Field(
-        0.3,
+        0.1,
         ge=0,
         le=10,
         description=(
             "real time: extra margin of both guards (a stalled host can hold a command for "
-            "several periods)"
+            "several periods; the guard's look-ahead follows the loop's lateness, and the "
+            "commands' look-ahead drives the guard's own predictions meanwhile)"
         ),
     )
     soft_guard: bool = Field(
@@ -389,6 +390,12 @@ class ControllerSection(_Section):
         100, ge=0, le=100_000, description="real time, at normal scheduling (SCHED_FIFO "
         "refused or off): the time slice the daemon asks the kernel for; a short one wakes "
         "it on time beside CPU-bound processes (Linux 6.12+; 0: the kernel's default)"
+    )
+    lookahead_periods: int = Field(
+        20, ge=0, le=20, description="real time, on an authenticated (CAN FD) bus: each "
+        "command also carries the commands of this many periods after it, which the plant "
+        "applies while no newer command has come (a loop that misses periods goes on as "
+        "planned instead of holding the last command); 0: none"
     )
     _old_priority = field_validator("realtime_priority", mode="before")(
         _none_is_normal_scheduling

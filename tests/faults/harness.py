@@ -28,7 +28,7 @@ from ballbeam.config import DEFAULT_BUS_GROUP, load_config
 from ballbeam.evaluation.summary import summarise
 from ballbeam.logs.reader import RunLog, read_log
 from ballbeam.protocol.frames import VOLTAGE_COMMAND_ID, FrameContract, VoltageCommand
-from ballbeam.protocol.secoc import AUTHENTICATED_LENGTH, SECRET_BYTES, FrameAuthenticator
+from ballbeam.protocol.secoc import SECRET_BYTES, FrameAuthenticator, is_authenticated_length
 from ballbeam.runtime.bus import IPV6_MULTICAST_ALL, free_udp_port, isolated_group, multicast_scope
 from ballbeam.runtime.launcher import secret_pipe
 from ballbeam.runtime.owner_lock import PEER_LOCK_ENV, create_owner_lock
@@ -176,7 +176,7 @@ def decoded(heard: Heard) -> object | None:
     if heard.is_extended_id:
         return None
     # An authenticated frame carries the classic one first (the watch does not check MACs).
-    data = heard.data[:8] if len(heard.data) == AUTHENTICATED_LENGTH else heard.data
+    data = heard.data[:8] if is_authenticated_length(len(heard.data)) else heard.data
     try:
         return CONTRACT.decode(heard.arbitration_id, data)
     except ValueError:

@@ -342,3 +342,33 @@ def test_the_mac_is_hmac_sha256_truncated_over_id_freshness_and_payload() -> Non
     assert sender.own_frame(VOLTAGE_COMMAND_ID, receiver.protect(VOLTAGE_COMMAND_ID, payload)) \
         == "not_sent"
     assert sender.own_frame(VOLTAGE_COMMAND_ID, other_key) == "invalid"
+
+
+def test_a_commands_lookahead_is_covered_by_the_same_mac() -> None:
+    """The 64-byte frame: payload ‖ look-ahead ‖ freshness ‖ MAC over all three; a flipped
+    look-ahead bit, a look-ahead cut off, or one moved onto a sensor frame, is refused."""
+    from ballbeam.protocol.frames import decode_lookahead, encode_lookahead
+    from ballbeam.protocol.secoc import FrameAuthenticator, extension_of
+
+    secret = os.urandom(32)
+    sender, receiver = FrameAuthenticator(secret), FrameAuthenticator(secret)
+    payload = CONTRACT.encode(VoltageCommand(3, 1.5, True, 7))[1]
+    lookahead = encode_lookahead((1.25, -4.5, 0.0))
+    data = sender.protect(VOLTAGE_COMMAND_ID, payload, lookahead)
+    assert len(data) == 64 and data[:8] == payload and extension_of(data) == lookahead
+    freshness = data[48:56]
+    expected = hmac.new(
+        secret, VOLTAGE_COMMAND_ID.to_bytes(4, "little") + freshness + payload + lookahead,
+        hashlib.sha256,
+    ).digest()[:8]
+    assert data[56:] == expected
+    tampered = bytearray(data)
+    tampered[9] ^= 0x01  # the first look-ahead value
+    assert receiver.verify(VOLTAGE_COMMAND_ID, bytes(tampered)) == "bad_mac"
+    cut = data[:8] + data[48:]  # the look-ahead removed, freshness and MAC kept
+    assert receiver.verify(VOLTAGE_COMMAND_ID, cut) == "bad_mac"
+    assert receiver.verify(VOLTAGE_COMMAND_ID + 1, data) == "bad_mac"  # the id is in the MAC
+    assert receiver.verify(VOLTAGE_COMMAND_ID, data) == "ok"
+    assert decode_lookahead(extension_of(data)) == (1.25, -4.5, 0.0)
+    with pytest.raises(ValueError, match="extension is 40 bytes"):
+        sender.protect(VOLTAGE_COMMAND_ID, payload, lookahead[:-2])

@@ -64,7 +64,7 @@ from ballbeam.protocol.frames import (
     FrameContract,
     e2e_profile5_crc,
 )
-from ballbeam.protocol.secoc import AUTHENTICATED_LENGTH, FrameAuthenticator
+from ballbeam.protocol.secoc import FrameAuthenticator, is_authenticated_length
 from ballbeam.runtime.bus import open_bus
 
 OUR_IDS = (VOLTAGE_COMMAND_ID, SENSOR_ID, TRUTH_ANGLE_ID, TRUTH_BALL_ID, PLANT_STATUS_ID)
@@ -104,7 +104,7 @@ class Attacker:
                 return
             data = bytes(message.data)
             if (
-                len(data) == AUTHENTICATED_LENGTH
+                is_authenticated_length(len(data))  # 24 bytes, or 64 with a look-ahead
                 and not message.is_extended_id
                 and not self.forger.authentic(message.arbitration_id, data)  # not our own
             ):

@@ -1,16 +1,26 @@
 """Offline closed loop: the plant physics and the control law, no bus, no clock.
 
 It is the lock-step bench without the processes: sensors are read at the start of each
-control period, the command is held over it.
+control period, the command is held over it. ``missed_periods`` adds what real time does to a
+late loop: periods in which no command comes, the plant driving the last command's look-ahead
+(or holding it) and the controller coasting on its model through them.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
 
-from ballbeam.core.control import ControllerDesign, control_cycle, starting_state
+from ballbeam.core.control import (
+    ControllerDesign,
+    CycleOutput,
+    coast_cycles,
+    control_cycle,
+    lookahead_voltages,
+    starting_state,
+)
 from ballbeam.core.plant import (
     PlantPhysics,
     SensorReading,
@@ -47,8 +57,14 @@ def simulate_closed_loop(
     sensor_periods_per_cycle: int,
     substeps_per_sensor_period: int,
     rng: np.random.Generator,
+    missed_periods: Mapping[int, int] | None = None,
 ) -> SimulationTrace:
+    """``n_cycles`` control periods from ``initial_state``. ``missed_periods``: {cycle k: n}
+    — before cycle k the loop misses n periods (they count in ``n_cycles``): the plant drives
+    the look-ahead of the last command (``design.lookahead_periods``; none: it holds the
+    command), the controller coasts through them and runs cycle k n periods late."""
     params = physics.params
+    missed = dict(missed_periods or {})
     state = np.asarray(initial_state, dtype=float)
     noise_m = initial_noise(params, rng)
     controller = starting_state(design)
@@ -66,27 +82,50 @@ def simulate_closed_loop(
             "peak_abs_theta_rad",
         )
     }
-    for _ in range(n_cycles):
-        reading: SensorReading = read_sensors(params, state, noise_m)
-        controller, output = control_cycle(design, controller, reading)
-        for name, value in (
-            ("true_states", state),
-            ("angle_counts", reading.angle_counts),
-            ("position_counts", reading.position_counts),
-            ("estimates", output.estimate),
-            ("voltage_v", output.voltage_v),
-            ("requested_v", output.requested_v),
-            ("reference_states", output.reference),
-            ("reference_input_v", output.reference_input_v),
-        ):
-            columns[name].append(value)
+    output: CycleOutput | None = None
+    lookahead_v: tuple[float, ...] = ()
+    period_ns = round(design.period_s * 1e9)
+
+    def drive(voltage_v: float) -> float:
+        """One control period of physics at ``voltage_v``; the largest |θ| in it."""
+        nonlocal state, noise_m
         peak_rad = abs(float(state[0]))
         for _ in range(sensor_periods_per_cycle):
             state, step_peak_rad = physics.advance_with_peak(
-                state, output.voltage_v, substeps_per_sensor_period
+                state, voltage_v, substeps_per_sensor_period
             )
             peak_rad = max(peak_rad, step_peak_rad)
             noise_m = next_noise(params, noise_m, rng)
-        columns["peak_abs_theta_rad"].append(peak_rad)
+        return peak_rad
+
+    def record(last: CycleOutput, voltage_v: float, reading: SensorReading | None) -> None:
+        for name, value in (
+            ("true_states", state),
+            ("angle_counts", reading.angle_counts if reading is not None else 0),
+            ("position_counts", reading.position_counts if reading is not None else 0),
+            ("estimates", last.estimate),
+            ("voltage_v", voltage_v),
+            ("requested_v", last.requested_v if reading is not None else voltage_v),
+            ("reference_states", last.reference),
+            ("reference_input_v", last.reference_input_v),
+        ):
+            columns[name].append(value)
+        columns["peak_abs_theta_rad"].append(drive(voltage_v))
+
+    cycle = late = 0
+    while cycle < n_cycles:
+        if output is not None and (late := min(missed.get(cycle, 0), n_cycles - cycle)):
+            for index in range(late):  # no command comes: the plant goes on without one
+                record(output, lookahead_v[min(index, len(lookahead_v) - 1)]
+                       if lookahead_v else output.voltage_v, None)
+            controller = coast_cycles(design, controller, output.voltage_v, late, lookahead_v)
+            cycle += late
+            if cycle >= n_cycles:
+                break
+        reading: SensorReading = read_sensors(params, state, noise_m)
+        controller, output = control_cycle(design, controller, reading, late * period_ns)
+        lookahead_v = lookahead_voltages(design, controller) if missed else ()
+        record(output, output.voltage_v, reading)
+        cycle, late = cycle + 1, 0
     arrays = {name: np.array(values) for name, values in columns.items()}
     return SimulationTrace(time_s=np.arange(n_cycles) * design.period_s, **arrays)

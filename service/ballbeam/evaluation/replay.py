@@ -18,7 +18,13 @@ import numpy as np
 
 from ballbeam.assembly import controller_design
 from ballbeam.config import Config, config_from_mapping
-from ballbeam.core.control import ControllerDesign, coast_cycles, control_cycle, starting_state
+from ballbeam.core.control import (
+    ControllerDesign,
+    coast_cycles,
+    control_cycle,
+    lookahead_voltages,
+    starting_state,
+)
 from ballbeam.core.plant import SensorReading
 from ballbeam.errors import BallbeamError, LogFormatError
 from ballbeam.evaluation.summary import check_layouts
@@ -59,6 +65,10 @@ def verify(run_log: RunLog) -> VerifyResult:
             data = json.loads(text)
             if not isinstance(data, dict):
                 raise ValueError("not a JSON object")
+            controller = data.get("controller")
+            if isinstance(controller, dict) and "lookahead_periods" not in controller:
+                # Recorded before commands carried a look-ahead: the plant held the last one.
+                data = {**data, "controller": {**controller, "lookahead_periods": 0}}
             config = config_from_mapping(data, f"{run_log.path} (recorded config)")
         except (ValueError, RecursionError) as error:
             config_error = f"recorded config unusable: {error}"
@@ -78,16 +88,19 @@ def verify(run_log: RunLog) -> VerifyResult:
     design, source, difference = _designs(run_log, config)
     state = starting_state(design)
     held_v = 0.0
+    commanded = False  # whether the last command was the law's (it then carried a look-ahead)
     period_ns = round(design.period_s * 1e9)
     for index in range(count):
         skipped = int(timing["skipped"][index])
         if skipped:
-            state = coast_cycles(design, state, held_v, skipped)
+            lookahead_v = lookahead_voltages(design, state) if commanded else ()
+            state = coast_cycles(design, state, held_v, skipped, lookahead_v)
         recorded_v = float(command["voltage_v"][index])
         if command["enable"][index] == 0:
             # A fault cycle: the daemon sent 0 V and coasted its observer on it.
             replayed_v = 0.0
             state = coast_cycles(design, state, 0.0, 1)
+            commanded = False
         else:
             reading = None
             if sensor["fresh"][index]:
@@ -97,6 +110,7 @@ def verify(run_log: RunLog) -> VerifyResult:
             lateness_ns = int(timing["lateness_ns"][index]) + skipped * period_ns
             state, output = control_cycle(design, state, reading, lateness_ns)
             replayed_v = output.voltage_v
+            commanded = True
         if replayed_v != recorded_v or state.cycle - 1 != int(command["cycle"][index]):
             mismatch = Mismatch(index, int(command["cycle"][index]), recorded_v, replayed_v)
             return VerifyResult(index + 1, mismatch, source, difference)

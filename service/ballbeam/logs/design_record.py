@@ -27,6 +27,8 @@ observer_C, observer_L     (2, 4),   output matrix and steady-state Kalman gain
 deadband_v, deadzone_v     ()        command band sent as 0 V; modelled dead zone
 rest_from_cycle            ()        the plan's end (cycle): rest observer and gains
 rest_observer_L            (4, 2)    present with a rest filter: its Kalman gain
+lookahead_periods          ()        present when each command carried the commands of this
+                                     many periods after it (absent: none, the plant held)
 rest_*                               present with rest gains: gain (4,), far_gain (4,)
                                      (optional), firm_gain (4,) and firm_cycles ()
                                      (optional), catch_gain (2,) and catch_cycles ()
@@ -117,6 +119,8 @@ def encode_design(design: ControllerDesign) -> bytes:
         "observer_L": _f8(design.observer.L),
         "rest_from_cycle": _f8(design.rest_from_cycle),
     }
+    if design.lookahead_periods:
+        arrays["lookahead_periods"] = _f8(design.lookahead_periods)
     if design.rest_observer is not None:
         arrays["rest_observer_L"] = _f8(design.rest_observer.L)
     rest = design.rest_gains
@@ -283,6 +287,9 @@ def decode_design(data: bytes, where: str) -> ControllerDesign:
             adaptation=adaptation,
             deadzone_learning=learning,
             noise_adaptation=noise,
+            lookahead_periods=(
+                _count(arrays["lookahead_periods"]) if "lookahead_periods" in arrays else 0
+            ),
         )
     except LogFormatError:
         raise

@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import operator
+import struct
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -35,6 +36,12 @@ TRUTH_BALL_ID: Final = 0x103
 PLANT_STATUS_ID: Final = 0x104
 FRAME_LENGTH: Final = 8
 COUNTER_MODULUS: Final = 256
+# A command's look-ahead (virtual CAN FD bus only; protocol/secoc.py): the commands for the
+# periods after it, int16 little-endian at the Voltage signal's 1 mV, NO_LOOKAHEAD_RAW after
+# the last one given.
+LOOKAHEAD_SLOTS: Final = 20
+LOOKAHEAD_MV_PER_V: Final = 1000
+NO_LOOKAHEAD_RAW: Final = -32768
 
 DBC_RESOURCE: Final = "ballbeam.dbc"  # package data of ballbeam.protocol
 
@@ -473,6 +480,42 @@ class FrameContract:
         if field.sign_bit:
             raw = np.where(raw & field.sign_bit, raw - (field.sign_bit << 1), raw)
         return raw
+
+
+def encode_lookahead(voltages_v: tuple[float, ...]) -> bytes:
+    """A command's look-ahead extension: at most LOOKAHEAD_SLOTS voltages, each within
+    ±32.767 V (the Voltage signal's range; FrameRejectedError "range" else), 1 mV each."""
+    if len(voltages_v) > LOOKAHEAD_SLOTS:
+        raise FrameRejectedError(
+            "range", VOLTAGE_COMMAND_ID, f"{len(voltages_v)} look-ahead voltages, at most "
+            f"{LOOKAHEAD_SLOTS}"
+        )
+    raws = []
+    for voltage_v in voltages_v:
+        raw = round(voltage_v * LOOKAHEAD_MV_PER_V) if abs(voltage_v) <= 32.767 else None
+        if raw is None:  # NaN fails the test too
+            raise FrameRejectedError(
+                "range", VOLTAGE_COMMAND_ID, f"look-ahead voltage {voltage_v!r} V is outside "
+                "[-32.767, 32.767]"
+            )
+        raws.append(raw)
+    raws += [NO_LOOKAHEAD_RAW] * (LOOKAHEAD_SLOTS - len(raws))
+    return struct.pack(f"<{LOOKAHEAD_SLOTS}h", *raws)
+
+
+def decode_lookahead(extension: bytes) -> tuple[float, ...]:
+    """The voltages of a command's look-ahead extension; FrameRejectedError unless it is
+    LOOKAHEAD_SLOTS slots whose given values all come before the empty ones."""
+    if len(extension) != 2 * LOOKAHEAD_SLOTS:
+        raise FrameRejectedError(
+            "length", VOLTAGE_COMMAND_ID,
+            f"look-ahead of {len(extension)} bytes, expected {2 * LOOKAHEAD_SLOTS}",
+        )
+    raws = struct.unpack(f"<{LOOKAHEAD_SLOTS}h", extension)
+    given = raws.index(NO_LOOKAHEAD_RAW) if NO_LOOKAHEAD_RAW in raws else LOOKAHEAD_SLOTS
+    if any(raw != NO_LOOKAHEAD_RAW for raw in raws[given:]):
+        raise FrameRejectedError("range", VOLTAGE_COMMAND_ID, "look-ahead has a gap")
+    return tuple(raw / LOOKAHEAD_MV_PER_V for raw in raws[:given])
 
 
 class CounterCheck:

@@ -11,6 +11,10 @@ therefore sent as a 24-byte CAN FD frame::
     bytes 16..23  MAC: HMAC-SHA256(secret, id (uint32 LE) ‖ freshness ‖ payload), truncated
                   to 64 bits
 
+A voltage command may carry an extension between the classic payload and the freshness: the
+controller's look-ahead (``frames.encode_lookahead``, 40 bytes), making a 64-byte frame whose
+MAC covers the payload and the extension together.
+
 keyed by a per-run 32-byte secret the launcher hands to both processes through an inherited
 pipe (never argv, never the environment, never the log).
 
@@ -38,7 +42,11 @@ SECRET_BYTES: Final = 32
 CLASSIC_LENGTH: Final = 8
 FRESHNESS_BYTES: Final = 8
 MAC_BYTES: Final = 8
-AUTHENTICATED_LENGTH: Final = CLASSIC_LENGTH + FRESHNESS_BYTES + MAC_BYTES  # a CAN FD length
+TRAILER_BYTES: Final = FRESHNESS_BYTES + MAC_BYTES
+AUTHENTICATED_LENGTH: Final = CLASSIC_LENGTH + TRAILER_BYTES  # a CAN FD length
+EXTENSION_BYTES: Final = 40  # a command's look-ahead (frames.LOOKAHEAD_SLOTS int16 values)
+EXTENDED_LENGTH: Final = AUTHENTICATED_LENGTH + EXTENSION_BYTES  # 64: CAN FD's largest frame
+_LENGTHS: Final = (AUTHENTICATED_LENGTH, EXTENDED_LENGTH)
 DEFAULT_WINDOW_NS: Final = 1_000_000_000
 MAX_SENT_KEPT: Final = 65_536  # own frames remembered (a window's worth at any sane rate)
 
@@ -68,10 +76,14 @@ class FrameAuthenticator:
         message = arbitration_id.to_bytes(4, "little") + freshness + payload
         return hmac.digest(self._key, message, hashlib.sha256)[:MAC_BYTES]
 
-    def protect(self, arbitration_id: int, payload: bytes) -> bytes:
-        """The 24-byte authenticated frame data for a classic 8-byte ``payload``."""
+    def protect(self, arbitration_id: int, payload: bytes, extension: bytes = b"") -> bytes:
+        """The authenticated frame data for a classic 8-byte ``payload`` (24 bytes), or with
+        an ``extension`` of EXTENSION_BYTES after it (64 bytes)."""
         if len(payload) != CLASSIC_LENGTH:
             raise ValueError(f"a classic payload is {CLASSIC_LENGTH} bytes, got {len(payload)}")
+        if extension and len(extension) != EXTENSION_BYTES:
+            raise ValueError(f"an extension is {EXTENSION_BYTES} bytes, got {len(extension)}")
+        payload += extension
         value = max(self._last_sent + 1, time.monotonic_ns())
         self._last_sent = value
         key = (arbitration_id, value)
@@ -88,16 +100,16 @@ class FrameAuthenticator:
 
     @staticmethod
     def freshness_of(data: bytes) -> int:
-        return int.from_bytes(data[CLASSIC_LENGTH:CLASSIC_LENGTH + FRESHNESS_BYTES], "little")
+        return int.from_bytes(data[-TRAILER_BYTES:-MAC_BYTES], "little")
 
     def authentic(self, arbitration_id: int, data: bytes) -> bool:
         """True when ``data`` is an authenticated frame whose MAC is right (no state change)."""
-        if len(data) != AUTHENTICATED_LENGTH:
+        if len(data) not in _LENGTHS:
             return False
-        payload = data[:CLASSIC_LENGTH]
-        freshness = data[CLASSIC_LENGTH:CLASSIC_LENGTH + FRESHNESS_BYTES]
+        payload = data[:-TRAILER_BYTES]
+        freshness = data[-TRAILER_BYTES:-MAC_BYTES]
         return hmac.compare_digest(
-            data[CLASSIC_LENGTH + FRESHNESS_BYTES:], self._mac(arbitration_id, freshness, payload)
+            data[-MAC_BYTES:], self._mac(arbitration_id, freshness, payload)
         )
 
     def own_frame(
@@ -125,7 +137,7 @@ class FrameAuthenticator:
 
     def verify(self, arbitration_id: int, data: bytes, now_ns: int | None = None) -> AuthVerdict:
         """Judge a frame from a peer; only ``"ok"`` moves the stream's freshness forward."""
-        if len(data) != AUTHENTICATED_LENGTH:
+        if len(data) not in _LENGTHS:
             return "unauthenticated"
         if not self.authentic(arbitration_id, data):
             return "bad_mac"
@@ -137,6 +149,16 @@ class FrameAuthenticator:
             return "out_of_window"
         self._last_accepted[arbitration_id] = value
         return "ok"
+
+
+def is_authenticated_length(length: int) -> bool:
+    """Whether a frame of ``length`` bytes has the layout of an authenticated one."""
+    return length in _LENGTHS
+
+
+def extension_of(data: bytes) -> bytes:
+    """The extension of an authenticated frame's data (empty for a 24-byte frame)."""
+    return data[CLASSIC_LENGTH:-TRAILER_BYTES]
 
 
 def read_secret(fd: int) -> bytes:

@@ -8,7 +8,12 @@ import can
 
 from ballbeam.logs.recording import RunRecording
 from ballbeam.logs.topics import CAN_TX, COMMAND, CommandRecord
-from ballbeam.protocol.frames import VOLTAGE_COMMAND_ID, FrameContract, next_counter
+from ballbeam.protocol.frames import (
+    VOLTAGE_COMMAND_ID,
+    FrameContract,
+    encode_lookahead,
+    next_counter,
+)
 from ballbeam.protocol.secoc import FrameAuthenticator
 from ballbeam.runtime.daemon.intake import SentCommands, frame_record
 
@@ -35,6 +40,7 @@ class CommandOut:
         self.recording = recording
         self.counter = 0
         self.last_data: bytes | None = None  # lock-step answers a repeated sample with it
+        self.last_extension = b""
         self.resends = 0
 
     def send(
@@ -45,12 +51,19 @@ class CommandOut:
         requested_v: float,
         enable: bool,
         sensor_counter: int,
+        lookahead_v: tuple[float, ...] = (),
     ) -> None:
+        """``lookahead_v``: the commands for the periods after this one (authenticated bus
+        only: they ride in the frame's extension, protocol/secoc.py)."""
         data = self.contract.encode_voltage_command(
             self.counter, voltage_v, enable, sensor_counter
         )
+        extension = (
+            encode_lookahead(lookahead_v) if lookahead_v and self.auth is not None else b""
+        )
         self.last_data = data
-        self._send_bytes(data, log_time_ns, cycle)
+        self.last_extension = extension
+        self._send_bytes(data, log_time_ns, cycle, extension)
         self.recording.write(COMMAND, log_time_ns, CommandRecord(
             cycle, voltage_v, requested_v, int(enable), self.counter, sensor_counter
         ))
@@ -58,7 +71,7 @@ class CommandOut:
 
     def resend_last(self, log_time_ns: int, cycle: int) -> None:
         if self.last_data is not None:
-            self._send_bytes(self.last_data, log_time_ns, cycle)
+            self._send_bytes(self.last_data, log_time_ns, cycle, self.last_extension)
             self.resends += 1
 
     def shutdown(self, log_time_ns: int, cycle: int) -> None:
@@ -68,12 +81,14 @@ class CommandOut:
             self._send_bytes(data, log_time_ns, cycle)
             self.counter = next_counter(self.counter)
 
-    def _send_bytes(self, data: bytes, log_time_ns: int, cycle: int) -> None:
+    def _send_bytes(
+        self, data: bytes, log_time_ns: int, cycle: int, extension: bytes = b""
+    ) -> None:
         if self.auth is not None:
             # A fresh freshness value each time: a lock-step resend is a new frame, not a replay.
             message = can.Message(
                 arbitration_id=VOLTAGE_COMMAND_ID,
-                data=self.auth.protect(VOLTAGE_COMMAND_ID, data),
+                data=self.auth.protect(VOLTAGE_COMMAND_ID, data, extension),
                 is_extended_id=False,
                 is_fd=True,
             )

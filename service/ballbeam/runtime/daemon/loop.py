@@ -23,6 +23,7 @@ from ballbeam.core.control import (
     CycleOutput,
     coast_cycles,
     control_cycle,
+    lookahead_voltages,
     starting_state,
 )
 from ballbeam.core.plant import SensorReading
@@ -153,6 +154,7 @@ class ControllerDaemon:
         self.cycles_since_sensor = 0
         self.in_fault = False
         self.last_output: CycleOutput | None = None
+        self.lookahead_v: tuple[float, ...] = ()  # sent with the last command
         self.wall_origin_ns = time.time_ns()
         self.mono_origin_ns = time.monotonic_ns()
         self.log_time_ns = self.wall_origin_ns
@@ -238,12 +240,15 @@ class ControllerDaemon:
         self._record_sensor(cycle, reading)
         self.state, output = control_cycle(self.design, self.state, reading, lateness_ns)
         self.last_output = output
+        # What the plant is to drive if the next commands do not come in time (real time).
+        self.lookahead_v = lookahead_voltages(self.design, self.state)
         self._stats.cycles += 1
         if reading is None:
             self._stats.coasted_cycles += 1
         else:
             self._stats.measured_cycles += 1
-        self._command(cycle, output.voltage_v, output.requested_v, enable=True)
+        self._command(cycle, output.voltage_v, output.requested_v, enable=True,
+                      lookahead_v=self.lookahead_v)
         at_ns = self.log_time_ns
         self.recording.write(ESTIMATE, at_ns, EstimateRecord(cycle, *output.estimate))
         self.recording.write(
@@ -251,11 +256,14 @@ class ControllerDaemon:
         )
         self._watch_theta(output.estimate[0])
 
-    def _command(self, cycle: int, voltage_v: float, requested_v: float, enable: bool) -> None:
+    def _command(
+        self, cycle: int, voltage_v: float, requested_v: float, enable: bool,
+        lookahead_v: tuple[float, ...] = (),
+    ) -> None:
         latest = self.intake.latest
         sensor_counter = latest.counter if latest is not None else 0
         self.commands.send(self.log_time_ns, cycle, voltage_v, requested_v, enable,
-                           sensor_counter)
+                           sensor_counter, lookahead_v)
 
     def _sensor_timeout_periods(self) -> int:
         """Silent periods before 0 V: ``sensor_timeout_periods``; with ``ballbeam run``'s link,
@@ -303,6 +311,7 @@ class ControllerDaemon:
         cycle = self.state.cycle
         self._record_sensor(cycle, None)
         self._command(cycle, 0.0, 0.0, enable=False)
+        self.lookahead_v = ()  # the plant holds 0 V
         self.state = coast_cycles(self.design, self.state, 0.0, 1)
         self._stats.cycles += 1
         self._stats.fault_cycles += 1
@@ -474,7 +483,8 @@ class ControllerDaemon:
         held_v = self.last_output.voltage_v if self.last_output is not None else 0.0
         if self.in_fault:
             held_v = 0.0
-        self.state = coast_cycles(self.design, self.state, held_v, count)
+        # The plant drove the look-ahead sent with the last command, then held its last entry.
+        self.state = coast_cycles(self.design, self.state, held_v, count, self.lookahead_v)
         self._event("overrun", f"skipped {count} period(s), coasting on the model")
 
     def _shutdown(self) -> None:
