@@ -97,6 +97,12 @@ def test_it_covers_the_loops_recent_lateness_and_a_floor(design: ControllerDesig
     stalled = dataclasses.replace(state, lateness=LatenessWatch(worst_ns=80_000_000))
     assert lookahead_count(design, stalled) == 20
     assert lookahead_voltages(dataclasses.replace(design, lookahead_periods=0), state) == ()
+    # After the plan, at rest (the sensors read 0): the commands are held as before, no cost.
+    assert design.rest_gains is not None
+    at_rest = dataclasses.replace(state, cycle=design.rest_gains.from_cycle - 1)
+    while at_rest.cycle < design.rest_gains.from_cycle + 1000:
+        at_rest, _ = control_cycle(design, at_rest, SensorReading(0, 0))
+    assert lookahead_count(design, at_rest) == 0 and lookahead_voltages(design, at_rest) == ()
 
 
 def test_a_loop_that_misses_periods_in_the_last_swing_still_rests_on_time(

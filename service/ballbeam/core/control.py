@@ -501,10 +501,19 @@ def _measure_noise(
 
 def lookahead_count(design: ControllerDesign, state: ControllerState) -> int:
     """How many periods a command's look-ahead covers: LOOKAHEAD_FLOOR more than the loop's
-    recent worst lateness (``state.lateness``), at most ``design.lookahead_periods``. Each
-    period costs the cycle ~4.5 µs, and a loop's CPU time is its lateness beside CPU-bound
-    processes at normal priority: 20 periods always (+90 µs a cycle) made it later (2 hogs,
-    6 s runs: 111–219 overruns against 18–146, rest median 1.782 s against 1.776 s)."""
+    recent worst lateness (``state.lateness``), at most ``design.lookahead_periods``; none
+    once the plan is over and the estimate is within the rest gains' near band (the commands
+    there are tenths of a volt at most, and held as before). Each period costs the cycle
+    ~4.5 µs, and a loop's CPU time is its lateness beside CPU-bound processes at normal
+    priority: 20 periods always (+90 µs a cycle) made it later (2 hogs, 6 s runs: 111–219
+    overruns against 18–146, rest median 1.782 s against 1.776 s)."""
+    rest = design.rest_gains
+    if (
+        rest is not None and state.cycle >= rest.from_cycle + rest.catch_cycles
+        and state.prediction is not None
+        and rest.stiff_weight(state.cycle, state.prediction) == 0.0
+    ):
+        return 0
     period_ns = round(design.period_s * 1e9)
     late_periods = -(-state.lateness.worst_ns // period_ns)  # rounded up
     return min(design.lookahead_periods, LOOKAHEAD_FLOOR + late_periods)
