@@ -527,9 +527,9 @@ def lookahead_voltages(design: ControllerDesign, state: ControllerState) -> tupl
 
     Sent with each command, they let the plant go on as planned when the loop misses periods,
     instead of holding the last command: at the end of the last swing the servo turns at
-    ~10 rad/s, and a full-voltage brake held 4–10 ms too long turned it back 0.6–0.8° (the
-    rest band is 0.5°) and rested the ball 15–30 ms late (simulated gaps of up to 16 periods
-    in the last 0.3 s: 25 of 500 rested > 10 ms late held, 0 of 500 with 16 periods ahead)."""
+    ~10 rad/s, and a full-voltage brake held 3–10 ms too long turned it back 0.6–1° (the rest
+    band is 0.5°) and rested the ball 15–30 ms late (simulated gaps of 2–16 periods in the
+    last 0.3 s: 25 of 500 rested > 10 ms late held, none with 16 or 20 periods ahead)."""
     prediction = state.prediction
     if prediction is None or design.lookahead_periods <= 0:
         return ()
