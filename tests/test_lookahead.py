@@ -70,6 +70,8 @@ def test_only_a_real_time_run_on_the_authenticated_bus_sends_one() -> None:
     assert controller_design(load_config(None, ["run.duration_s=2.5"])).lookahead_periods == 0
     classic = load_config(None, ["run.mode='realtime'", "bus.authenticate=false"])
     assert controller_design(classic).lookahead_periods == 0  # 8-byte frames have no room
+    two_samples = load_config(None, ["run.mode='realtime'", "plant.sensor_rate_hz=2000"])
+    assert controller_design(two_samples).lookahead_periods == 0  # stepped per sample
 
 
 def test_the_lookahead_is_what_the_law_sends_when_no_measurement_comes(

@@ -195,10 +195,13 @@ def controller_design(config: Config, plan: Plan | None = None) -> ControllerDes
         initial_state=as_row4(initial),
         angle_per_count=constants.angle_sensor_gain * encoder_step_rad,
         position_per_count=constants.position_sensor_gain * adc_step_m,
-        # Only a real-time run on the authenticated bus sends it (its 64-byte CAN FD frames).
+        # Only a real-time run on the authenticated bus sends it (its 64-byte CAN FD frames),
+        # and only with a sample a period: the emulator steps it at its sample instants, and a
+        # command does not say which of several samples in a period its period began with.
         lookahead_periods=(
             config.controller.lookahead_periods
-            if config.run.mode == "realtime" and config.bus.authenticated else 0
+            if config.run.mode == "realtime" and config.bus.authenticated
+            and sensor_periods_per_cycle(config) == 1 else 0
         ),
     )
 

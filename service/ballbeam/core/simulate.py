@@ -83,7 +83,6 @@ def simulate_closed_loop(
         )
     }
     output: CycleOutput | None = None
-    lookahead_v: tuple[float, ...] = ()
     period_ns = round(design.period_s * 1e9)
 
     def drive(voltage_v: float) -> float:
@@ -115,6 +114,7 @@ def simulate_closed_loop(
     cycle = late = 0
     while cycle < n_cycles:
         if output is not None and (late := min(missed.get(cycle, 0), n_cycles - cycle)):
+            lookahead_v = lookahead_voltages(design, controller)  # sent with the last command
             for index in range(late):  # no command comes: the plant goes on without one
                 record(output, lookahead_v[min(index, len(lookahead_v) - 1)]
                        if lookahead_v else output.voltage_v, None)
@@ -124,7 +124,6 @@ def simulate_closed_loop(
                 break
         reading: SensorReading = read_sensors(params, state, noise_m)
         controller, output = control_cycle(design, controller, reading, late * period_ns)
-        lookahead_v = lookahead_voltages(design, controller) if missed else ()
         record(output, output.voltage_v, reading)
         cycle, late = cycle + 1, 0
     arrays = {name: np.array(values) for name, values in columns.items()}
