@@ -1,0 +1,69 @@
+"""The ticker's schedule against a fake clock: cycles stay tied to wall time."""
+
+from __future__ import annotations
+
+import pytest
+
+from ballbeam.runtime import ticker as ticker_module
+from ballbeam.runtime.ticker import Ticker
+
+PERIOD_NS = 1_000_000
+
+
+class FakeClock:
+    """monotonic_ns and sleep; a sleep may be 'preempted' and wake later than asked."""
+
+    def __init__(self) -> None:
+        self.now_ns = 0
+        self.oversleep_ns: list[int] = []  # extra delay of each sleep, in order
+
+    def monotonic_ns(self) -> int:
+        self.now_ns += 1_000  # each reading costs a microsecond, as spinning does
+        return self.now_ns
+
+    def sleep(self, seconds: float) -> None:
+        extra_ns = self.oversleep_ns.pop(0) if self.oversleep_ns else 0
+        self.now_ns += round(seconds * 1e9) + extra_ns
+
+
+@pytest.fixture
+def clock(monkeypatch: pytest.MonkeyPatch) -> FakeClock:
+    fake = FakeClock()
+    monkeypatch.setattr(ticker_module, "time", fake)
+    return fake
+
+
+def test_on_time_cycles_follow_the_deadlines(clock: FakeClock) -> None:
+    ticker = Ticker(PERIOD_NS, spin_ns=100_000, start_ns=0)
+    ticks = [ticker.wait() for _ in range(5)]
+    assert [t.cycle for t in ticks] == [0, 1, 2, 3, 4]
+    assert all(t.skipped == 0 and 0 <= t.lateness_ns < 5_000 for t in ticks)
+    assert ticker.overruns == 0
+
+
+def test_a_cycle_that_overran_skips_the_periods_it_missed(clock: FakeClock) -> None:
+    ticker = Ticker(PERIOD_NS, spin_ns=100_000, start_ns=0)
+    ticker.wait()
+    clock.now_ns += 3_400_000  # cycle 0's work took 3.4 ms
+    tick = ticker.wait()
+    assert (tick.cycle, tick.skipped) == (3, 2)
+    assert tick.deadline_ns == 3 * PERIOD_NS and 0 <= tick.lateness_ns < PERIOD_NS
+    assert ticker.overruns == 1
+
+
+def test_a_wait_preempted_past_whole_periods_starts_the_period_it_wakes_in(
+    clock: FakeClock,
+) -> None:
+    """Woken 3.7 ms after its deadline, the cycle is the one of the period it starts in, not
+    the old one (which ran on the newest sensor sample as if it were the old period's: the
+    servo looked 0.5° ahead of where it was)."""
+    ticker = Ticker(PERIOD_NS, spin_ns=0, start_ns=0)
+    ticker.wait()
+    clock.oversleep_ns = [3_700_000]
+    tick = ticker.wait()
+    assert (tick.cycle, tick.skipped) == (4, 3)
+    assert tick.deadline_ns == 4 * PERIOD_NS and 0 <= tick.lateness_ns < PERIOD_NS
+    # Lateness plus skipped periods: how far behind its schedule the loop got, as before.
+    assert tick.lateness_ns + tick.skipped * PERIOD_NS >= 3_700_000
+    assert ticker.overruns == 1
+    assert ticker.wait().cycle == 5
