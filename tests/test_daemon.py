@@ -7,6 +7,7 @@ import secrets
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import can
 import numpy as np
@@ -388,8 +389,8 @@ def test_the_plant_drives_the_lookahead_of_a_command_while_no_newer_one_comes() 
     emulator = PlantEmulator(config, bus, CONTRACT, auth=FrameAuthenticator(secret))
 
     def command(counter: int, voltage_v: float, lookahead_v: tuple[float, ...],
-                enable: bool = True) -> can.Message:
-        _, data = CONTRACT.encode(VoltageCommand(counter, voltage_v, enable, 0))
+                enable: bool = True, period: int = 0) -> can.Message:
+        _, data = CONTRACT.encode(VoltageCommand(counter, voltage_v, enable, period))
         extension = encode_lookahead(lookahead_v) if lookahead_v else b""
         return can.Message(
             arbitration_id=VOLTAGE_COMMAND_ID, is_extended_id=False, is_fd=True,
@@ -415,7 +416,7 @@ def test_the_plant_drives_the_lookahead_of_a_command_while_no_newer_one_comes() 
                                  (3.0, emulator.substeps), (4.0, emulator.substeps), (4.0, half)):
             expected = emulator.physics.advance(expected, voltage_v, steps)
         assert np.allclose(emulator.state, expected, rtol=0, atol=1e-12)
-        newer = emulator._accept_command(command(1, -1.0, (-2.0,)))  # in period 4
+        newer = emulator._accept_command(command(1, -1.0, (-2.0,), period=4))
         assert newer is not None
         emulator._apply(*newer, now_ns=physics_ns)
         assert emulator.voltage_v == -1.0
@@ -426,12 +427,20 @@ def test_the_plant_drives_the_lookahead_of_a_command_while_no_newer_one_comes() 
         emulator._apply(*stopped, now_ns=physics_ns)
         physics_ns = emulator._advance_until(physics_ns, 8 * period_ns)
         assert emulator.voltage_v == 0.0 and emulator.lookahead_v == ()
-        again = emulator._accept_command(command(3, 1.0, (2.0, 3.0)))
+        again = emulator._accept_command(command(3, 1.0, (2.0, 3.0), period=8))
         assert again is not None
         emulator._apply(*again, now_ns=physics_ns)
         emulator._check_watchdog(now_ns=physics_ns + emulator.watchdog_ns + 1)
-        emulator._advance_until(physics_ns, 11 * period_ns)
+        physics_ns = emulator._advance_until(physics_ns, 11 * period_ns)
         assert emulator.voltage_v == 0.0 and emulator.lookahead_v == ()
+        # A command for period 9 that comes in period 11 (its sender stalled between reading
+        # and sending): it drives its entry for period 11 now, and the next from period 12.
+        late = emulator._accept_command(command(4, 1.0, (2.0, 3.0, 4.0, 5.0), period=9))
+        assert late is not None
+        emulator._apply(*late, now_ns=physics_ns)
+        assert emulator.voltage_v == 3.0
+        emulator._advance_until(physics_ns, 12 * period_ns + period_ns // 2)
+        assert emulator.voltage_v == 4.0
     finally:
         emulator.stop()
         bus.shutdown()
@@ -453,7 +462,17 @@ def test_a_real_time_run_that_overran_replays_bit_for_bit_with_its_lookahead(
                 time.sleep(0.006)
             return tick
 
+    from ballbeam.runtime.daemon.command_out import CommandOut
+
+    send = CommandOut.send
+
+    def stalling_send(self: CommandOut, log_time_ns: int, cycle: int, *args: Any) -> None:
+        if cycle in (900, 1500):  # the CPU lost between reading the sample and sending
+            time.sleep(0.004)
+        send(self, log_time_ns, cycle, *args)
+
     monkeypatch.setattr("ballbeam.runtime.daemon.loop.Ticker", StallingTicker)
+    monkeypatch.setattr(CommandOut, "send", stalling_send)
     config = virtual_config(
         2.0, "run.mode='realtime'", "controller.realtime_priority=0", "controller.cpu=-1",
         "plant.cpu=-1", "plant.realtime_priority=0",
@@ -463,6 +482,19 @@ def test_a_real_time_run_that_overran_replays_bit_for_bit_with_its_lookahead(
     run_log = read_log(log_path)
     skipped = run_log.topics["/timing"].values["skipped"]
     assert int(skipped.sum()) >= 3
+    # Each command names its plant period (the plant aligns the look-ahead with it): the
+    # period of the cycle's clock, which the samples give (a cycle takes at times the sample
+    # before or after its own), whether the cycle measured or coasted.
+    sensors, commands = run_log.topics["/sensor"].values, run_log.topics["/command"].values
+    measured = (sensors["fresh"] != 0) & (sensors["cycle"] >= 50)
+    offsets = (sensors["counter"][measured].astype(int) - sensors["cycle"][measured]) % 256
+    values, counts = np.unique(offsets, return_counts=True)
+    offset = int(values[np.argmax(counts)])
+    assert counts.max() > 0.95 * counts.sum()
+    enabled = (commands["enable"] == 1) & (commands["cycle"] >= 50)
+    named = (commands["cycle"][enabled].astype(int) + offset) % 256
+    assert np.array_equal(commands["sensor_counter"][enabled], named)
+    assert not (sensors["fresh"][np.isin(sensors["cycle"], commands["cycle"][enabled])] != 0).all()
     result = replay.verify(run_log)
     assert result.ok and result.design_source == "recorded"
     decoded = design_record.decode_design(

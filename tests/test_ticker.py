@@ -67,3 +67,18 @@ def test_a_wait_preempted_past_whole_periods_starts_the_period_it_wakes_in(
     assert tick.lateness_ns + tick.skipped * PERIOD_NS >= 3_700_000
     assert ticker.overruns == 1
     assert ticker.wait().cycle == 5
+
+
+def test_catch_up_moves_a_cycle_preempted_after_its_start_to_the_present_period(
+    clock: FakeClock,
+) -> None:
+    """A cycle that lost the CPU after it started, before it read its inputs, is moved to the
+    period the clock is in: the periods between are skipped, the next wait follows on."""
+    ticker = Ticker(PERIOD_NS, spin_ns=0, start_ns=0)
+    tick = ticker.wait()
+    assert ticker.catch_up(tick) == tick  # still its own period
+    clock.now_ns += 2_500_000
+    moved = ticker.catch_up(tick)
+    assert (moved.cycle, moved.skipped, moved.deadline_ns) == (2, 2, 2 * PERIOD_NS)
+    assert ticker.overruns == 1
+    assert ticker.wait().cycle == 3

@@ -37,6 +37,7 @@ from ballbeam.config import Config
 from ballbeam.core.plant import PlantPhysics, initial_noise, next_noise, read_sensors
 from ballbeam.errors import FrameError
 from ballbeam.protocol.frames import (
+    COUNTER_MODULUS,
     PLANT_STATUS_ID,
     PLANT_STATUS_VALUE_MAX,
     SENSOR_ID,
@@ -269,12 +270,28 @@ class PlantEmulator:
         self.last_command_ns = now_ns
         self.watchdog_zeroed = False
         self.voltage_v = command.voltage_v if command.enable else 0.0
-        # Its first entry is for the period after the one it came in (the controller's next).
         self.lookahead_v = lookahead_v if command.enable and self.realtime else ()
-        self.lookahead_from = self.next_boundary_index
+        # Its first entry is for the period after the one it names. A command that comes
+        # periods late (its sender lost the CPU between reading and sending) drives its entry
+        # for the period it lands in, not its own stale voltage (driven as on time, such
+        # commands put 0.16 V on the brake where the law's entry was −4.5 V, and shifted
+        # the look-ahead after them back by as many periods).
+        late = self._periods_late(command.sensor_counter)
+        self.lookahead_from = self.next_boundary_index - late
+        if late and self.lookahead_v:
+            self.voltage_v = self.lookahead_v[min(late, len(self.lookahead_v)) - 1]
         if command.enable:
             self.started = True
         self.counters.commands_applied += 1
+
+    def _periods_late(self, period_counter: int) -> int:
+        """Real time: how many periods ago the period a command names began (its 8-bit
+        counter against the period the physics is in); 0 for one named for this period, or
+        for one ahead of the physics (half the counter's range or more behind counts so)."""
+        if not self.realtime:
+            return 0
+        late = (self.next_boundary_index - 1 - period_counter) % COUNTER_MODULUS
+        return late if late < COUNTER_MODULUS // 2 else 0
 
     def _advance_until(self, physics_ns: int, until_ns: int) -> int:
         """Real time: advance the physics from ``physics_ns`` to ``until_ns`` (whole

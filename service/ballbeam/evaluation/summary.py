@@ -17,6 +17,7 @@ from ballbeam.errors import LogFormatError
 from ballbeam.logs.reader import RunLog
 from ballbeam.logs.topics import LEGACY_STRUCT_TOPICS, STRUCT_TOPICS
 from ballbeam.protocol.frames import (
+    COUNTER_MODULUS,
     PLANT_STATUS_FIELDS,
     SENSOR_ID,
     VOLTAGE_COMMAND_ID,
@@ -91,7 +92,9 @@ def _percentile_us(values_ns: np.ndarray, q: float) -> float:
 
 def sensor_to_command_latency_s(run_log: RunLog) -> np.ndarray:
     """For each enabled command: send time minus the kernel receive time of the sensor frame
-    it answers (paired by the echoed counter, latest such frame before the send)."""
+    of the period it names (paired by the echoed counter, latest such frame before the send;
+    none where that frame came half the counter's range or more before: a coasting cycle's
+    period whose sample never came, paired with one a wrap earlier)."""
     rx, tx = run_log.topics.get("/can/rx"), run_log.topics.get("/can/tx")
     if rx is None or tx is None or not len(rx) or not len(tx):
         return np.empty(0)
@@ -104,6 +107,9 @@ def sensor_to_command_latency_s(run_log: RunLog) -> np.ndarray:
     sensor_counters = contract.raw_signal(SENSOR_ID, "Counter", sensors["data"])
     answered = contract.raw_signal(VOLTAGE_COMMAND_ID, "SensorCounter", commands["data"])
     latencies = []
+    received_s = np.sort(sensors["bus_time_s"])
+    period_s = float(np.median(np.diff(received_s))) if received_s.size > 1 else math.inf
+    wrap_s = period_s * COUNTER_MODULUS / 2
     for counter in np.unique(answered):
         received = np.sort(sensors["bus_time_s"][sensor_counters == counter])
         sent = commands["bus_time_s"][answered == counter]
@@ -111,7 +117,8 @@ def sensor_to_command_latency_s(run_log: RunLog) -> np.ndarray:
             continue
         index = np.searchsorted(received, sent, side="right") - 1
         valid = index >= 0
-        latencies.append(sent[valid] - received[index[valid]])
+        latency = sent[valid] - received[index[valid]]
+        latencies.append(latency[latency < wrap_s])
     return np.concatenate(latencies) if latencies else np.empty(0)
 
 

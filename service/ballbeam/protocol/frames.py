@@ -87,7 +87,8 @@ class FrameRejectedError(FrameError):
 
 @dataclass(frozen=True, slots=True)
 class VoltageCommand:
-    """0x100, controller → plant. ``sensor_counter``: counter of the sensor frame answered."""
+    """0x100, controller → plant. ``sensor_counter``: counter of the plant period the command
+    is for (the sensor frame it answers; coasting in real time, the period its cycle is in)."""
 
     counter: int
     voltage_v: float

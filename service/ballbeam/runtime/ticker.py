@@ -47,17 +47,28 @@ class Ticker:
                 time.sleep((sleep_until_ns - now_ns) * 1e-9)
             while (now_ns := time.monotonic_ns()) < deadline_ns:
                 pass
+        return self.catch_up(Tick(self._next_cycle, deadline_ns, now_ns, 0))
+
+    def catch_up(self, tick: Tick) -> Tick:
+        """``tick`` while its period is the present one; once the clock is a whole period or
+        more past its deadline, the tick of the period it is in now, the periods between
+        skipped (counted). The loop asks again after reading its inputs: preempted before it
+        read them, it would take the newest sample for its old period's."""
         # Preempted in the sleep, a loop woke 3–4 ms late and ran the old period on the
         # newest sample (20 times in 6 s beside two CPU hogs, unprivileged): it took the
         # servo for 0.5° ahead of where it was and cut the drive on the last swing.
-        skipped = (now_ns - deadline_ns) // self.period_ns
-        if skipped:
+        now_ns = time.monotonic_ns()
+        behind = (now_ns - tick.deadline_ns) // self.period_ns
+        if behind <= 0:
+            self._next_cycle = tick.cycle + 1
+            return tick
+        if not tick.skipped:
             self.overruns += 1
-        cycle = self._next_cycle + skipped
+        cycle = tick.cycle + behind
         self._next_cycle = cycle + 1
         return Tick(
-            cycle=cycle, deadline_ns=deadline_ns + skipped * self.period_ns, start_ns=now_ns,
-            skipped=skipped,
+            cycle=cycle, deadline_ns=tick.deadline_ns + behind * self.period_ns,
+            start_ns=now_ns, skipped=tick.skipped + behind,
         )
 
 def worst_lateness_ns(period_ns: int, duration_s: float, spin_ns: int) -> int:

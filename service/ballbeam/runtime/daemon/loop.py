@@ -39,7 +39,7 @@ from ballbeam.logs.topics import (
     SensorRecord,
     TimingRecord,
 )
-from ballbeam.protocol.frames import SENSOR_ID, CounterCheck, FrameContract
+from ballbeam.protocol.frames import COUNTER_MODULUS, SENSOR_ID, CounterCheck, FrameContract
 from ballbeam.protocol.secoc import FrameAuthenticator
 from ballbeam.runtime.bus import recv_frame
 from ballbeam.runtime.daemon.command_out import CommandOut
@@ -65,6 +65,8 @@ FINAL_STATUS_WAIT_S = 0.5
 # of now (a starved daemon reading its socket behind the stream); up to a period older is the
 # loop's ordinary jitter (SensorIntake.take).
 LATE_SAMPLE_CYCLES = 2
+# Measured cycles in a row whose samples must agree on which plant period a cycle is.
+PERIOD_OFFSET_AGREEMENT = 8
 # A cycle reads its socket for half a period at most, so that a flood cannot hold the loop; a
 # daemon behind the stream reads on up to this share of the period [%] to catch up.
 CATCH_UP_SHARE = 80
@@ -152,6 +154,9 @@ class ControllerDaemon:
         self.state = starting_state(design)
         self._stats = DaemonStats(authenticated=auth is not None)
         self.cycles_since_sensor = 0
+        self.period_offset: int | None = None  # plant sample counter − cycle, mod 256
+        self._offset_candidate, self._offset_agreement = -1, 0
+        self.one_period_a_cycle = sensor_periods_per_cycle(config) == 1
         self.in_fault = False
         self.last_output: CycleOutput | None = None
         self.lookahead_v: tuple[float, ...] = ()  # sent with the last command
@@ -230,6 +235,8 @@ class ControllerDaemon:
         else:
             reading = SensorReading(sample.angle_counts, sample.position_counts)
             self.cycles_since_sensor = 0
+            if self.one_period_a_cycle:
+                self._learn_period_offset(sample.counter, cycle)
         timeout = self._sensor_timeout_periods()
         if self.state.prediction is not None and self.cycles_since_sensor >= timeout:
             self._fault_cycle()
@@ -256,14 +263,35 @@ class ControllerDaemon:
         )
         self._watch_theta(output.estimate[0])
 
+    def _learn_period_offset(self, sample_counter: int, cycle: int) -> None:
+        """Plant periods and cycles both follow the clock, so the plant period of cycle k is
+        k + offset. Now and then a cycle takes the sample of the period before (it came
+        late) or after (the cycle started late), and the first cycles take the samples queued
+        while the plant waited: an offset counts once PERIOD_OFFSET_AGREEMENT measured cycles
+        in a row give it."""
+        offset = (sample_counter - cycle) % COUNTER_MODULUS
+        if offset == self._offset_candidate:
+            self._offset_agreement += 1
+        else:
+            self._offset_candidate, self._offset_agreement = offset, 1
+        if self._offset_agreement >= PERIOD_OFFSET_AGREEMENT:
+            self.period_offset = offset
+
     def _command(
         self, cycle: int, voltage_v: float, requested_v: float, enable: bool,
         lookahead_v: tuple[float, ...] = (),
     ) -> None:
-        latest = self.intake.latest
-        sensor_counter = latest.counter if latest is not None else 0
+        # The command names the plant period it is for: its sample's, or, coasting, the one
+        # the cycle's clock is in. The plant aligns the look-ahead with it, so a command that
+        # comes late (this process lost the CPU between reading and sending) still drives its
+        # entry for the period it lands in, not its own stale voltage.
+        if self.period_offset is not None:
+            period_counter = (cycle + self.period_offset) % COUNTER_MODULUS
+        else:
+            latest = self.intake.latest
+            period_counter = latest.counter if latest is not None else 0
         self.commands.send(self.log_time_ns, cycle, voltage_v, requested_v, enable,
-                           sensor_counter, lookahead_v)
+                           period_counter, lookahead_v)
 
     def _sensor_timeout_periods(self) -> int:
         """Silent periods before 0 V: ``sensor_timeout_periods``; with ``ballbeam run``'s link,
@@ -432,10 +460,6 @@ class ControllerDaemon:
         while not self.stop.is_set() and self.state.cycle < self.n_cycles:
             tick = ticker.wait()
             self.log_time_ns = self.wall_origin_ns + tick.cycle * self.period_ns
-            if tick.skipped:
-                self._stats.overruns += 1
-                self._stats.skipped_periods += tick.skipped
-                self._coast_skipped(tick.skipped)
             # Read what has arrived, for half a period at most: a flood must not hold the loop
             # (the rest is read next cycle, or dropped by the kernel if its buffer overflows).
             drain_until_ns = tick.start_ns + self.period_ns // 2
@@ -450,6 +474,14 @@ class ControllerDaemon:
                     break
             if self._stats.end_reason == "second_writer":
                 break  # no further drive: the shutdown commands 0 V now
+            # Preempted before it read the bus, the cycle is the period it is in now: the
+            # sample it took is of this period, not a later one's taken for its own.
+            tick = ticker.catch_up(tick)
+            self.log_time_ns = self.wall_origin_ns + tick.cycle * self.period_ns
+            if tick.skipped:
+                self._stats.overruns += 1
+                self._stats.skipped_periods += tick.skipped
+                self._coast_skipped(tick.skipped)
             # The angle guard looks as far ahead as the loop has lately been late (replayed
             # from /timing: the same sum of its lateness and skipped periods).
             self._cycle(tick.lateness_ns + tick.skipped * self.period_ns)
