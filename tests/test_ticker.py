@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from ballbeam.runtime import ticker as ticker_module
@@ -82,3 +83,15 @@ def test_catch_up_moves_a_cycle_preempted_after_its_start_to_the_present_period(
     assert (moved.cycle, moved.skipped, moved.deadline_ns) == (2, 2, 2 * PERIOD_NS)
     assert ticker.overruns == 1
     assert ticker.wait().cycle == 3
+
+
+def test_a_logs_lateness_counts_the_periods_skipped_before_a_cycle() -> None:
+    """A cycle that ran as the period it woke in has its own lateness under a period; how far
+    behind its schedule the loop was is that plus the periods it skipped (summary, report)."""
+    from ballbeam.evaluation.summary import behind_schedule_ns
+
+    timing = np.zeros(5, dtype=[("deadline_ns", "i8"), ("lateness_ns", "i8"), ("skipped", "i8")])
+    timing["deadline_ns"] = np.array([0, 1, 2, 6, 7]) * PERIOD_NS
+    timing["skipped"] = [0, 0, 0, 3, 0]
+    timing["lateness_ns"] = [10_000, 20_000, 30_000, 40_000, 50_000]
+    assert behind_schedule_ns(timing).tolist() == [10_000, 20_000, 30_000, 3_040_000, 50_000]

@@ -38,7 +38,7 @@ class RunSeries:
     voltage_v: np.ndarray
     reference_time_s: np.ndarray
     reference_states: np.ndarray  # (M, 4) at reference_time_s
-    lateness_ns: np.ndarray
+    lateness_ns: np.ndarray  # behind schedule: lateness plus the periods skipped before
 
 
 STATE_NAMES = ("theta_rad", "theta_rate_rad_s", "ball_velocity_m_s", "ball_position_m")
@@ -80,8 +80,20 @@ def run_series(run_log: RunLog) -> RunSeries:
         voltage_v=np.asarray(command.values["voltage_v"], dtype=float),
         reference_time_s=(reference.log_time_ns - origin_ns) * 1e-9,
         reference_states=np.column_stack([reference.values[name] for name in STATE_NAMES]),
-        lateness_ns=np.asarray(timing.values["lateness_ns"], dtype=np.int64),
+        lateness_ns=behind_schedule_ns(timing.values),
     )
+
+
+def behind_schedule_ns(timing: np.ndarray) -> np.ndarray:
+    """Each cycle's start less the first deadline it was due after the cycle before: its
+    lateness plus the periods skipped before it (a cycle late by a period or more runs as the
+    period it starts in, so its own lateness is under a period)."""
+    lateness_ns = np.asarray(timing["lateness_ns"], dtype=np.int64)
+    skipped = np.asarray(timing["skipped"], dtype=np.int64)
+    deadlines_ns = np.asarray(timing["deadline_ns"], dtype=np.int64)
+    steps_ns = np.diff(deadlines_ns) // (1 + skipped[1:])
+    period_ns = int(np.median(steps_ns)) if steps_ns.size else 0
+    return lateness_ns + skipped * period_ns
 
 
 def _percentile_us(values_ns: np.ndarray, q: float) -> float:
