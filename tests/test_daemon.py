@@ -446,6 +446,39 @@ def test_the_plant_drives_the_lookahead_of_a_command_while_no_newer_one_comes() 
         bus.shutdown()
 
 
+def test_a_command_heard_late_acts_from_its_arrival_when_the_physics_gets_there() -> None:
+    """Real time: a command that came while the emulator was off the CPU (read under the limit
+    of the period it stalled in) waits, and acts from its kernel receive stamp once the
+    physics reaches it. Before, it acted from the limit: early by up to the stall, and its
+    look-ahead started from the wrong period (traced: a plant two periods ahead)."""
+    config = virtual_config(1.0, "run.mode='realtime'")
+    bus = can.Bus(interface="virtual", channel=config.bus.channel)
+    emulator = PlantEmulator(config, bus, CONTRACT)
+    period_ns = emulator.sensor_period_ns
+    try:
+        base_ns = time.monotonic_ns() - 20 * period_ns
+        emulator.realtime, emulator.started = True, True
+        emulator.next_boundary_ns, emulator.next_boundary_index = base_ns, 0
+        physics_ns = emulator._advance_until(base_ns, base_ns)  # sample 0's instant
+        start = emulator.state.copy()
+        _, data = CONTRACT.encode(VoltageCommand(0, 1.0, True, 0))
+        arrived_ns = base_ns + 7 * emulator.substep_ns // 2  # mid-substep 3 (stamps: ±1 µs)
+        message = can.Message(
+            arbitration_id=VOLTAGE_COMMAND_ID, is_extended_id=False, data=data,
+            timestamp=(arrived_ns + time.time_ns() - time.monotonic_ns()) * 1e-9,
+        )
+        physics_ns = emulator._take_command(message, physics_ns, base_ns + emulator.substep_ns)
+        assert emulator.voltage_v == 0.0 and len(emulator.pending) == 1
+        physics_ns = emulator._advance_until(physics_ns, base_ns + period_ns // 2)
+        assert emulator.voltage_v == 1.0 and not emulator.pending
+        expected = emulator.physics.advance(start, 0.0, 3)
+        expected = emulator.physics.advance(expected, 1.0, emulator.substeps // 2 - 3)
+        assert np.allclose(emulator.state, expected, rtol=0, atol=1e-12)
+    finally:
+        emulator.stop()
+        bus.shutdown()
+
+
 def test_a_real_time_run_that_overran_replays_bit_for_bit_with_its_lookahead(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -128,6 +128,9 @@ class PlantEmulator:
         self.next_boundary_index = 0
         self.lookahead_v: tuple[float, ...] = ()
         self.lookahead_from = 0
+        # Commands heard that act once the physics reaches their arrival: (arrival, command,
+        # look-ahead), in arrival order.
+        self.pending: list[tuple[int, VoltageCommand, tuple[float, ...]]] = []
         self.command_check = CounterCheck()
         self.counters = EmulatorCounters()
         self.watchdog_ns = int(config.plant.watchdog_ms * 1e6)
@@ -253,16 +256,18 @@ class PlantEmulator:
 
     def _take_command(self, message: can.Message, physics_ns: int, limit_ns: int) -> int:
         """Real time: judge ``message``; a valid command acts on the physics from the moment it
-        reached this host (the kernel's receive stamp, not when this process got to it), at
-        most up to ``limit_ns``. Returns the physics' new time."""
+        reached this host (the kernel's receive stamp, not when this process got to it). The
+        physics goes at most up to ``limit_ns`` now: a command that came later (this process
+        was off the CPU meanwhile) waits, and acts when the physics gets to its arrival.
+        Returns the physics' new time."""
         accepted = self._accept_command(message)
         if accepted is None:
             return physics_ns
         now_ns = time.monotonic_ns()
         arrived_ns = min(max(arrival_ns(message, now_ns), physics_ns), now_ns)
-        physics_ns = self._advance_until(physics_ns, min(arrived_ns, limit_ns))
-        self._apply(*accepted, now_ns=arrived_ns)
-        return physics_ns
+        self.last_command_ns = arrived_ns  # heard: the watchdog counts from here
+        self.pending.append((arrived_ns, *accepted))
+        return self._advance_until(physics_ns, min(arrived_ns, limit_ns))
 
     def _apply(
         self, command: VoltageCommand, lookahead_v: tuple[float, ...] = (), *, now_ns: int
@@ -294,18 +299,31 @@ class PlantEmulator:
         return late if late < COUNTER_MODULUS // 2 else 0
 
     def _advance_until(self, physics_ns: int, until_ns: int) -> int:
-        """Real time: advance the physics from ``physics_ns`` to ``until_ns`` (whole
-        substeps); each sample period begun on the way starts on the latest command's
-        look-ahead for it, if any. Returns the physics' new time."""
-        while self.realtime and self.next_boundary_ns <= until_ns:
-            due = (self.next_boundary_ns - physics_ns) // self.substep_ns
-            self._advance(due)
-            physics_ns += max(due, 0) * self.substep_ns
+        """Advance the physics from ``physics_ns`` to ``until_ns`` (whole substeps): the
+        commands heard meanwhile act from their arrival on the way, and (real time) each
+        sample period begun starts on the latest command's look-ahead for it, if any.
+        Returns the physics' new time."""
+        while True:
+            # Commands waiting for the physics to reach their arrival act there, in order;
+            # between them (real time) each sample instant switches to the look-ahead's entry.
+            boundary_ns = self.next_boundary_ns if self.realtime else until_ns + 1
+            if self.pending and self.pending[0][0] <= min(until_ns, boundary_ns - 1):
+                arrived_ns, command, lookahead_v = self.pending.pop(0)
+                physics_ns = self._advance_to(physics_ns, arrived_ns)
+                self._apply(command, lookahead_v, now_ns=arrived_ns)
+                continue
+            if boundary_ns > until_ns:
+                break
+            physics_ns = self._advance_to(physics_ns, self.next_boundary_ns)
             ahead = self.next_boundary_index - self.lookahead_from
             if self.lookahead_v and not self.watchdog_zeroed and ahead >= 0:
                 self.voltage_v = self.lookahead_v[min(ahead, len(self.lookahead_v) - 1)]
             self.next_boundary_ns += self.sensor_period_ns
             self.next_boundary_index += 1
+        return self._advance_to(physics_ns, until_ns)
+
+    def _advance_to(self, physics_ns: int, until_ns: int) -> int:
+        """Whole substeps from ``physics_ns`` towards ``until_ns``; the physics' new time."""
         due = (until_ns - physics_ns) // self.substep_ns
         self._advance(due)
         return physics_ns + max(due, 0) * self.substep_ns
@@ -334,6 +352,7 @@ class PlantEmulator:
         if state == "run_over" and not stop.is_set():
             self.voltage_v = 0.0
             self.lookahead_v = ()
+            self.pending.clear()
             stop.set("run_over")
             log.info("the daemon's run is over: stopping")
             return
@@ -342,6 +361,7 @@ class PlantEmulator:
             return
         self.voltage_v = 0.0
         self.lookahead_v = ()
+        self.pending.clear()
         self.watchdog_zeroed = True
         self.counters.peer_lost += 1
         self.command_check.reset()
@@ -457,3 +477,4 @@ class PlantEmulator:
         """Leave the plant safe: zero volts."""
         self.voltage_v = 0.0
         self.lookahead_v = ()
+        self.pending.clear()
