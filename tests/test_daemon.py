@@ -461,12 +461,9 @@ def test_a_command_heard_late_acts_from_its_arrival_when_the_physics_gets_there(
         emulator.next_boundary_ns, emulator.next_boundary_index = base_ns, 0
         physics_ns = emulator._advance_until(base_ns, base_ns)  # sample 0's instant
         start = emulator.state.copy()
-        _, data = CONTRACT.encode(VoltageCommand(0, 1.0, True, 0))
         arrived_ns = base_ns + 7 * emulator.substep_ns // 2  # mid-substep 3 (stamps: ±1 µs)
-        message = can.Message(
-            arbitration_id=VOLTAGE_COMMAND_ID, is_extended_id=False, data=data,
-            timestamp=(arrived_ns + time.time_ns() - time.monotonic_ns()) * 1e-9,
-        )
+        message = framed(VoltageCommand(0, 1.0, True, 0))
+        message.timestamp = (arrived_ns + time.time_ns() - time.monotonic_ns()) * 1e-9
         physics_ns = emulator._take_command(message, physics_ns, base_ns + emulator.substep_ns)
         assert emulator.voltage_v == 0.0 and len(emulator.pending) == 1
         physics_ns = emulator._advance_until(physics_ns, base_ns + period_ns // 2)

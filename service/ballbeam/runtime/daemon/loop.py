@@ -156,7 +156,11 @@ class ControllerDaemon:
         self.cycles_since_sensor = 0
         self.period_offset: int | None = None  # plant sample counter − cycle, mod 256
         self._offset_candidate, self._offset_agreement = -1, 0
-        self.one_period_a_cycle = sensor_periods_per_cycle(config) == 1
+        # Real time, one sample a cycle: commands name their plant period (the look-ahead is
+        # aligned with it). Lock-step answers each sample and names it, as before.
+        self.names_periods = (
+            config.run.mode == "realtime" and sensor_periods_per_cycle(config) == 1
+        )
         self.in_fault = False
         self.last_output: CycleOutput | None = None
         self.lookahead_v: tuple[float, ...] = ()  # sent with the last command
@@ -235,7 +239,7 @@ class ControllerDaemon:
         else:
             reading = SensorReading(sample.angle_counts, sample.position_counts)
             self.cycles_since_sensor = 0
-            if self.one_period_a_cycle:
+            if self.names_periods:
                 self._learn_period_offset(sample.counter, cycle)
         timeout = self._sensor_timeout_periods()
         if self.state.prediction is not None and self.cycles_since_sensor >= timeout:
