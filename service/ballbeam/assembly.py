@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ballbeam.config import Config
+from ballbeam.config import Config, TaskSection
 from ballbeam.core.adaptation import BallGainAdaptation, DeadZoneLearning, NoiseAdaptation
 from ballbeam.core.control import ControllerDesign, ObserverLaw, RestGains
 from ballbeam.core.guard import AngleGuard, make_angle_guard, make_soft_cap
@@ -47,7 +47,11 @@ def true_model(config: Config) -> LinearModel:
 
 def make_task(config: Config) -> Task:
     """The ``[task]`` section as the core's reference (a square wave stays periodic)."""
-    task = config.task
+    return task_of(config.task)
+
+
+def task_of(task: TaskSection) -> Task:
+    """A ``[task]`` section as the core's reference."""
     if task.setpoints is not None:
         times, targets = zip(*task.setpoints, strict=True)
         return StepSchedule(times_s=tuple(times), targets_m=tuple(targets))
