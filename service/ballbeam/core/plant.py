@@ -8,7 +8,6 @@ ADC counts with band-limited noise on the ball track. Pure: the caller owns stat
 
 from __future__ import annotations
 
-import bisect
 import math
 from dataclasses import dataclass
 
@@ -80,7 +79,7 @@ class PlantPhysics:
 
     def __init__(self, params: EmulatedPlant) -> None:
         self.params = params
-        self._tap_steps = tuple(step for step, _ in params.taps)
+        self._tap_steps = np.array([step for step, _ in params.taps], dtype=np.int64)
         true_model = LinearModel.from_gains(
             params.alpha, params.alpha_beta, params.gamma, C=np.zeros((2, 4))
         )
@@ -109,10 +108,11 @@ class PlantPhysics:
         """The taps at steps n, from_step < n ≤ from_step + substeps: (steps to go from the
         one before, Δv, n)."""
         steps = self._tap_steps
-        if not steps or substeps <= 0:
+        if not steps.size or substeps <= 0:
             return []
-        first = bisect.bisect_right(steps, from_step)
-        last = bisect.bisect_right(steps, from_step + substeps)
+        first, last = (int(i) for i in np.searchsorted(
+            steps, (from_step, from_step + substeps), side="right"
+        ))
         taps, done = [], from_step
         for step, change_m_s in self.params.taps[first:last]:
             taps.append((step - done, change_m_s, step))
