@@ -184,3 +184,85 @@ def test_a_recorded_null_realtime_priority_reads_as_normal_scheduling() -> None:
     data["plant"]["realtime_priority"] = None
     config = config_from_mapping(data, "old log")
     assert config.controller.realtime_priority == 0 and config.plant.realtime_priority == 0
+
+
+# -- [task] and [plant] disturbances ---------------------------------------------------------
+
+
+def test_the_default_task_is_the_papers() -> None:
+    task = load_config(None).task
+    assert (task.target_m, task.setpoints, task.square, task.sine) == (0.0, None, None, None)
+    assert task.kind == "fixed"
+    assert load_config(None).plant.disturbances == ()
+
+
+def test_every_task_form_is_set_from_the_command_line() -> None:
+    config = load_config(None, ["task.setpoints=[[0.0, 0.0], [4.0, -0.1]]"])
+    assert config.task.setpoints == ((0.0, 0.0), (4.0, -0.1))
+    assert config.task.kind == "steps"
+    # Dotted keys build the nested table one key at a time, or an inline table at once.
+    config = load_config(None, ["task.square.amplitude_m=0.05", "task.square.period_s=4"])
+    assert config.task.square is not None
+    assert (config.task.square.amplitude_m, config.task.square.period_s) == (0.05, 4.0)
+    assert config.task.square.offset_m == 0.0 and config.task.kind == "steps"
+    config = load_config(None, ["task.sine={amplitude_m=0.04, period_s=10, offset_m=-0.02}"])
+    assert config.task.sine is not None and config.task.sine.offset_m == -0.02
+    assert config.task.kind == "sine"
+    assert load_config(None, ["task.target_m=-0.15"]).task.target_m == -0.15
+    config = load_config(None, ["plant.disturbances=[[1.0, 0.1], [2.5, -0.2]]"])
+    assert config.plant.disturbances == ((1.0, 0.1), (2.5, -0.2))
+
+
+def test_a_file_task_takes_command_line_keys_into_its_table(tmp_path: Path) -> None:
+    path = tmp_path / "square.toml"
+    path.write_text("[task.square]\namplitude_m = 0.05\nperiod_s = 4.0\n"
+                    "[plant]\ndisturbances = [[1.5, 0.05]]\n")
+    config = load_config(path, ["task.square.period_s=8"])
+    assert config.task.square is not None
+    assert (config.task.square.amplitude_m, config.task.square.period_s) == (0.05, 8.0)
+    assert config.plant.disturbances == ((1.5, 0.05),)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (["task.target_m=0.1", "task.sine={amplitude_m=0.04, period_s=10}"],
+         "not target_m and sine"),
+        (["task.setpoints=[[0.0, 0.0]]", "task.square={amplitude_m=0.04, period_s=10}"],
+         "not setpoints and square"),
+        (["task.target_m=0.25"], "task.target_m"),
+        (["task.setpoints=[[0.5, 0.1]]"], "first setpoint must be at time 0"),
+        (["task.setpoints=[[0.0, 0.1], [2.0, 0.0], [2.0, 0.1]]"], "must ascend"),
+        (["task.setpoints=[[0.0, 0.1], [2.0, -0.21]]"], "beyond ±0.2 m"),
+        (["task.setpoints=[[0.0, nan]]"], "finite"),
+        (["task.setpoints=[]"], "task.setpoints"),
+        (["task.setpoints=[[0.0, 0.1, 3.0]]"], "task.setpoints"),
+        (["task.square.amplitude_m=0.05"], "task.square.period_s"),
+        (["task.square={amplitude_m=0.05, period_s=0.05}"], "task.square.period_s"),
+        (["task.square={amplitude_m=0.15, period_s=4, offset_m=0.1}"], "goes beyond ±0.2 m"),
+        (["task.sine={amplitude_m=0.15, period_s=10, offset_m=-0.1}"], "goes beyond ±0.2 m"),
+        (["task.sine={amplitude_m=0.04, period_s=1e6}"], "task.sine.period_s"),
+        (["task.sine={amplitude_m=0.04, period_s=10, phase=1}"], "unknown key"),
+        (["plant.disturbances=[[6.0, 0.1]]"], "not within the run"),
+        (["plant.disturbances=[[0.0, 0.1]]"], "after the start"),
+        (["plant.disturbances=[[1.0, 1.5]]"], "within ±1 m/s"),
+        (["plant.disturbances=[[1.0, 0.1], [0.5, 0.1]]"], "must ascend"),
+        (["plant.disturbances=[[1.0]]"], "plant.disturbances"),
+    ],
+)
+def test_bad_tasks_and_taps_are_refused_in_one_line(overrides: list[str], message: str) -> None:
+    with pytest.raises(ConfigError) as caught:
+        load_config(None, overrides)
+    assert message in str(caught.value)
+    assert "\n" not in str(caught.value)
+
+
+def test_schedules_and_taps_are_bounded_in_count() -> None:
+    many = ", ".join(f"[{k * 0.1:.1f}, 0.0]" for k in range(10_001))
+    with pytest.raises(ConfigError, match=r"task\.setpoints"):
+        load_config(None, [f"task.setpoints=[{many}]"])
+    taps = ", ".join(f"[{(k + 1) * 1e-3:.3f}, 0.01]" for k in range(1_001))
+    with pytest.raises(ConfigError, match=r"plant\.disturbances"):
+        load_config(None, ["run.duration_s=10", f"plant.disturbances=[{taps}]"])
+    ok = ", ".join(f"[{(k + 1) * 1e-3:.3f}, 0.01]" for k in range(1_000))
+    assert len(load_config(None, [f"plant.disturbances=[{ok}]"]).plant.disturbances) == 1000

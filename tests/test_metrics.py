@@ -8,14 +8,17 @@ import numpy as np
 import pytest
 
 from ballbeam.core.metrics import (
+    SegmentRest,
     compute_metrics,
     dither_hz,
     input_tv_ratio,
     largest_step_v,
     rest_time,
+    segment_rest_times,
     settle_time,
     sign_changes,
 )
+from ballbeam.core.task import FixedTarget, SquareWave, StepSchedule
 
 
 def _states(theta: np.ndarray, position: np.ndarray) -> np.ndarray:
@@ -87,3 +90,76 @@ def test_chatter_figures() -> None:
     t = np.arange(3000) * 1e-3
     u = np.where(np.arange(3000) % 100 < 50, 0.2, -0.2)  # 10 Hz square wave
     assert dither_hz(t, u) == pytest.approx(20.0, abs=1.0)
+
+
+# -- a task's target ------------------------------------------------------------------------
+
+
+def test_rest_settle_and_overshoot_are_measured_from_the_target() -> None:
+    t = np.arange(8) * 0.5
+    # From 0.15 m to a target of 0.05 m: passes it by 1 mm on the far side, then rests.
+    x = np.array([0.15, 0.1, 0.049, 0.0493, 0.0496, 0.0504, 0.05, 0.05])
+    theta = np.zeros(8)
+    states = _states(theta, x)
+    m = compute_metrics(t, states, np.zeros(8), np.full(8, 0.05), math.radians(52),
+                        target_m=0.05)
+    assert m.rest_time_s == 2.0  # |x − 0.05| <= 0.5 mm from 0.0496 m on
+    assert m.settle_time_s == 1.0
+    assert m.overshoot_mm == pytest.approx(1.0)
+    assert m.tracking_rms_mm == pytest.approx(
+        1e3 * math.sqrt(np.mean((x - 0.05) ** 2)))
+    # At the paper's target 0 the same trace never rests.
+    assert compute_metrics(t, states, np.zeros(8), x, math.radians(52)).rest_time_s is None
+    # A target per sample (a schedule's x_r(t)).
+    target = np.where(t < 1.0, 0.15, 0.05)
+    assert rest_time(t, states, target_m=target) == 2.0
+
+
+def _schedule_trace() -> tuple[np.ndarray, np.ndarray]:
+    """1 ms samples over 6 s: the ball at 0 until 2 s, then it moves to −0.1 m, resting there
+    from 2.8 s, and at 4 s it goes to 0.05 m, resting from 4.5 s; θ tilts 1° while it moves."""
+    t = np.arange(6000) * 1e-3
+    x = np.zeros_like(t)
+    theta = np.zeros_like(t)
+    first = (t >= 2.0) & (t < 2.8)
+    x[first] = -0.1 * (t[first] - 2.0) / 0.8
+    theta[first] = math.radians(1.0)
+    x[(t >= 2.8) & (t < 4.0)] = -0.1
+    second = (t >= 4.0) & (t < 4.5)
+    x[second] = -0.1 + 0.15 * (t[second] - 4.0) / 0.5
+    x[t >= 4.5] = 0.05
+    return t, _states(theta, x)
+
+
+def test_each_segment_of_a_schedule_has_its_own_rest() -> None:
+    t, states = _schedule_trace()
+    task = StepSchedule(times_s=(0.0, 2.0, 4.0), targets_m=(0.0, -0.1, 0.05))
+    segments = segment_rest_times(t, states, task)
+    assert [s.start_s for s in segments] == [0.0, 2.0, 4.0]
+    assert [s.target_m for s in segments] == [0.0, -0.1, 0.05]
+    assert segments[0].rest_after_s == 0.0
+    # The ramp reaches −0.1 m within 0.5 mm before 2.8 s, but θ is 1° until then.
+    assert segments[1].rest_after_s == pytest.approx(0.8, abs=1e-9)
+    # The ramp to 0.05 m reaches 0.0495 m at 4.5 s − 0.5 mm / (0.3 m/s): rest from there.
+    assert segments[2].rest_after_s == pytest.approx(0.5 - 0.0005 / 0.3, abs=1.5e-3)
+
+
+def test_a_segment_that_never_rests_says_so() -> None:
+    t, states = _schedule_trace()
+    states[(t >= 3.0) & (t < 3.5), 3] = -0.09  # knocked out of the band within segment 2
+    task = StepSchedule(times_s=(0.0, 2.0, 4.0), targets_m=(0.0, -0.1, 0.04))
+    segments = segment_rest_times(t, states, task)
+    assert segments[1].rest_after_s == pytest.approx(1.5, abs=1e-9)
+    assert segments[2].rest_after_s is None  # 0.05 m is 10 mm off the 0.04 m target
+
+
+def test_a_square_waves_segments_are_its_half_periods() -> None:
+    t = np.arange(4000) * 1e-3
+    square = SquareWave(amplitude_m=0.05, period_s=2.0)
+    states = _states(np.zeros_like(t), square.target_at(t))  # a ball exactly on the wave
+    segments = segment_rest_times(t, states, square)
+    assert [s.start_s for s in segments] == [0.0, 1.0, 2.0, 3.0]
+    assert [s.target_m for s in segments] == [0.05, -0.05, 0.05, -0.05]
+    assert all(s.rest_after_s == 0.0 for s in segments)
+    # A fixed target is one segment, the whole run.
+    assert segment_rest_times(t, states, FixedTarget(0.0)) == (SegmentRest(0.0, 0.0, None),)

@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 import pytest
-from numpy.testing import assert_allclose
+from numpy.testing import assert_allclose, assert_array_equal
 
 from ballbeam.assembly import plant_parameters
 from ballbeam.config import load_config
@@ -17,6 +17,7 @@ from ballbeam.core.plant import (
     drive_voltage,
     next_noise,
     read_sensors,
+    tap_step,
 )
 
 
@@ -136,3 +137,61 @@ def test_peak_angle_over_the_physics_steps_of_a_period() -> None:
             fine.append(physics.advance(fine[-1], -5.0, 1))
         assert peak == pytest.approx(max(abs(s[0]) for s in fine), rel=1e-9)
         assert peak > max(abs(state[0]), abs(end[0]))
+
+
+# -- taps ([plant] disturbances) ---------------------------------------------------------------
+
+
+def test_a_tap_lands_on_the_first_physics_step_at_or_after_its_time() -> None:
+    assert tap_step(1.0, 1e-4) == 10_000  # 1.0 / 1e-4 is 10000.000000000002 in floats
+    assert tap_step(0.3, 1e-4) == 3_000  # ... and 0.3 / 1e-4 is 2999.9999999999995
+    assert tap_step(0.30001, 1e-4) == 3_001
+    assert tap_step(1e-9, 1e-4) == 1
+    config = load_config(None, ["plant.disturbances=[[0.5, 0.1], [1.00025, -0.2]]"])
+    assert plant_parameters(config).taps == ((5_000, 0.1), (10_003, -0.2))
+
+
+def test_a_tap_adds_its_velocity_and_the_ball_carries_it_on() -> None:
+    """The linear plant superposes: a tap of Δv at step n changes the state at step m > n by
+    e^{A(m−n)h}·(0, 0, Δv, 0) = (0, 0, Δv, Δv·(m−n)·h), the ball's velocity not reaching the
+    servo."""
+    change_m_s = 0.07
+    base = _params(hard_stop_rad=100.0, beam_half_length_m=100.0)  # free: no stop to clip it
+    tapped = dataclasses.replace(base, taps=((10_003, change_m_s),))
+    start = np.array([0.3, 1.0, -0.05, 0.1])
+    free, hit = PlantPhysics(base), PlantPhysics(tapped)
+    free_state, hit_state = start, start
+    for period in range(1_002):  # 10 steps a period: the tap is 3 steps into period 1000
+        free_state = free.advance(free_state, 2.0, 10, period * 10)
+        hit_state = hit.advance(hit_state, 2.0, 10, period * 10)
+        if period == 999:
+            assert_array_equal(hit_state, free_state)  # not yet
+    elapsed_s = (10_020 - 10_003) * base.substep_s
+    assert_allclose(hit_state - free_state, [0.0, 0.0, change_m_s, change_m_s * elapsed_s],
+                    atol=1e-12)
+
+
+def test_the_peak_tracking_advance_taps_the_same() -> None:
+    params = dataclasses.replace(_params(), taps=((25, 0.1), (25, 0.05), (30, -0.3)))
+    physics = PlantPhysics(params)
+    start = np.array([0.0, 0.0, 0.0, 0.05])
+    plain, peaked, peak = start, start, 0.0
+    for period in range(5):
+        plain = physics.advance(plain, 4.0, 10, period * 10)
+        peaked, step_peak = physics.advance_with_peak(peaked, 4.0, 10, period * 10)
+        peak = max(peak, step_peak)
+    assert_array_equal(plain, peaked)
+    assert peak == pytest.approx(abs(plain[0]))  # θ rises monotonically from rest at 4 V
+    untapped = start
+    for period in range(5):
+        untapped = PlantPhysics(_params()).advance(untapped, 4.0, 10, period * 10)
+    assert plain[2] - untapped[2] == pytest.approx(0.1 + 0.05 - 0.3, abs=1e-12)
+
+
+def test_the_nonlinear_ball_takes_the_tap_too() -> None:
+    params = _params(nonlinear_ball=True)
+    start = np.array([0.2, 0.0, 0.0, 0.0])
+    free = PlantPhysics(params).advance(start, 0.0, 10, 0)
+    hit = PlantPhysics(dataclasses.replace(params, taps=((10, -0.2),))).advance(start, 0.0, 10, 0)
+    assert_array_equal(hit[[0, 1, 3]], free[[0, 1, 3]])  # the tap at the period's end
+    assert hit[2] - free[2] == pytest.approx(-0.2, abs=1e-15)

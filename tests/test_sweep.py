@@ -368,7 +368,7 @@ NOT_DESIGN = {
     "plant.physics_substeps": 20, "plant.seed": 5, "plant.hold_until_enabled": False,
     "plant.watchdog_ms": 30.0, "plant.lockstep_resend_ms": 30.0, "plant.cpu": 1,
     "plant.realtime_priority": 10, "plant.fair_slice_us": 500, "plant.command_loss": 0.1,
-    "plant.sensor_loss": 0.1,
+    "plant.sensor_loss": 0.1, "plant.disturbances": [[1.0, 0.1]],
     "run.duration_s": 2.0, "run.log_dir": "elsewhere", "run.lockstep_poll_us": 5,
     "bus.port": 40000,
 }
@@ -399,3 +399,11 @@ def test_configs_with_one_design_key_get_one_design() -> None:
         config = load_config(PAPER, [f"{key}={toml_value(value)}"])
         assert design_key(config) != design_key(base), key
         assert pickle.dumps(controller_design(config)) != design, key
+
+
+def test_a_target_changes_the_design_and_t_star() -> None:
+    from ballbeam.assembly import design_key, minimum_time_key
+
+    base, moved = load_config(PAPER), load_config(PAPER, ["task.target_m=0.05"])
+    assert design_key(moved) != design_key(base)
+    assert minimum_time_key(moved) != minimum_time_key(base)

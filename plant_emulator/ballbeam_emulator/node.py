@@ -119,6 +119,7 @@ class PlantEmulator:
         self.substep_ns = self.sensor_period_ns // self.substeps
         self.sensor_periods_per_command = sensor_periods_per_cycle(config)
         self.started = not config.plant.hold_until_enabled
+        self.steps_done = 0  # physics steps since the ball's release: the taps' clock
         self.voltage_v = 0.0
         self.counter = 0
         # Real time: when the next sample period starts and its index, and the latest
@@ -385,7 +386,10 @@ class PlantEmulator:
 
     def _advance(self, substeps: int) -> None:
         if self.started and substeps > 0:
-            self.state = self.physics.advance(self.state, self.voltage_v, substeps)
+            self.state = self.physics.advance(
+                self.state, self.voltage_v, substeps, self.steps_done
+            )
+            self.steps_done += substeps
 
     # -- modes --------------------------------------------------------------------------------
     def run_lockstep(self, stop: StopFlag) -> None:

@@ -11,18 +11,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ballbeam.config import Config
+from ballbeam.config import Config, TaskSection
 from ballbeam.core.adaptation import BallGainAdaptation, DeadZoneLearning, NoiseAdaptation
 from ballbeam.core.control import ControllerDesign, ObserverLaw, RestGains
 from ballbeam.core.guard import AngleGuard, make_angle_guard, make_soft_cap
 from ballbeam.core.metrics import RunMetrics, compute_metrics
-from ballbeam.core.model import LinearModel, PhysicalConstants, as_row4
+from ballbeam.core.model import BALL_POSITION, LinearModel, PhysicalConstants, as_row4
 from ballbeam.core.observer import design_observer
 from ballbeam.core.planning.plan import Plan
-from ballbeam.core.plant import ADC_COUNT_LIMIT, EmulatedPlant, PlantPhysics
+from ballbeam.core.plant import ADC_COUNT_LIMIT, EmulatedPlant, PlantPhysics, tap_step
 from ballbeam.core.simulate import SimulationTrace, simulate_closed_loop
+from ballbeam.core.task import FixedTarget, SineWave, SquareWave, StepSchedule, Task
 from ballbeam.core.tracker import stationary_gain, synthesize_discrete
-from ballbeam.errors import PlanningError
+from ballbeam.errors import ConfigError, PlanningError
 
 DEFAULT_POSITION_NOISE_M = 2e-4
 
@@ -44,9 +45,49 @@ def true_model(config: Config) -> LinearModel:
     )
 
 
+def make_task(config: Config) -> Task:
+    """The ``[task]`` section as the core's reference (a square wave stays periodic)."""
+    return task_of(config.task)
+
+
+def task_of(task: TaskSection) -> Task:
+    """A ``[task]`` section as the core's reference."""
+    if task.setpoints is not None:
+        times, targets = zip(*task.setpoints, strict=True)
+        return StepSchedule(times_s=tuple(times), targets_m=tuple(targets))
+    if task.square is not None:
+        square = task.square
+        return SquareWave(square.amplitude_m, square.period_s, square.offset_m)
+    if task.sine is not None:
+        sine = task.sine
+        return SineWave(sine.amplitude_m, sine.period_s, sine.offset_m)
+    return FixedTarget(task.target_m)
+
+
+def fixed_target_m(config: Config) -> float:
+    """The one target this controller can bring the ball to (it plans once, from the start);
+    ConfigError for a task that changes during the run."""
+    kind = config.task.kind
+    if kind != "fixed":
+        keys = "task.sine" if kind == "sine" else "task.setpoints/square"
+        raise ConfigError(
+            f"{keys} need the re-planning controller; this controller plans once from the "
+            "start and holds one target (task.target_m)"
+        )
+    return config.task.target_m
+
+
+def planned_start(config: Config, target_m: float) -> np.ndarray:
+    """The start in the law's coordinates: x from the target (the linear model is the same
+    under a shift of x, so a plan to the origin there is a plan to the target)."""
+    start = config.initial.state()
+    start[BALL_POSITION] -= target_m
+    return start
+
+
 def make_plan(config: Config) -> Plan:
     constants = physical_constants(config)
-    start = config.initial.state()
+    start = planned_start(config, fixed_target_m(config))
     theta_max_rad = config.limits.theta_rad
     kind = config.plan.kind
     # Imported per kind: the LP solver is only loaded when the time-optimal path is asked for.
@@ -74,15 +115,16 @@ def make_plan(config: Config) -> Plan:
 
 
 def minimum_time_s(config: Config) -> float | None:
-    """T*: the full model's minimum time from the config's start to rest at the origin under
-    the full voltage and angle limits (the time-optimal planner with zero margins); None
-    where no such path exists (a start beyond the limit)."""
+    """T*: the full model's minimum time from the config's start to rest at the task's target
+    at the start (a step schedule's first) under the full voltage and angle limits (the
+    time-optimal planner with zero margins); None where no such path exists (a start beyond
+    the limit)."""
     from ballbeam.core.planning.time_optimal import plan_time_optimal
 
     try:
         plan = plan_time_optimal(
             design_model(config),
-            config.initial.state(),
+            planned_start(config, make_task(config).target_at(0.0)),
             voltage_limit_v=config.limits.voltage_v,
             theta_max_rad=config.limits.theta_rad,
             step_s=config.controller.period_s,
@@ -93,6 +135,7 @@ def minimum_time_s(config: Config) -> float | None:
 
 
 def controller_design(config: Config, plan: Plan | None = None) -> ControllerDesign:
+    target_m = fixed_target_m(config)
     plan = plan if plan is not None else make_plan(config)
     model = design_model(config)
     period_s = config.controller.period_s
@@ -172,7 +215,7 @@ def controller_design(config: Config, plan: Plan | None = None) -> ControllerDes
     guard = _angle_guard(config, model) if config.controller.theta_guard else None
     n_reference = tracker.K.shape[0]
     samples = plan.sample(np.arange(n_reference) * period_s)
-    initial = config.initial.state()
+    initial = planned_start(config, target_m)
     return ControllerDesign(
         period_s=tracker.period_s,
         plan_duration_s=float(plan.duration_s),
@@ -203,6 +246,7 @@ def controller_design(config: Config, plan: Plan | None = None) -> ControllerDes
             if config.run.mode == "realtime" and config.bus.authenticated
             and sensor_periods_per_cycle(config) == 1 else 0
         ),
+        target_m=target_m,
     )
 
 
@@ -354,6 +398,7 @@ def plant_parameters(config: Config) -> EmulatedPlant:
     constants = physical_constants(config)
     plant_model = true_model(config)
     sensor_period_s = 1.0 / plant.sensor_rate_hz
+    substep_s = sensor_period_s / plant.physics_substeps
     return EmulatedPlant(
         alpha=float(plant_model.B[1, 0]),
         alpha_beta=float(-plant_model.A[1, 1]),
@@ -366,12 +411,15 @@ def plant_parameters(config: Config) -> EmulatedPlant:
         arm_to_beam_ratio=constants.arm_radius_m / constants.beam_length_m,
         beam_half_length_m=constants.beam_length_m / 2.0,
         hard_stop_rad=math.radians(plant.hard_stop_deg),
-        substep_s=sensor_period_s / plant.physics_substeps,
+        substep_s=substep_s,
         encoder_step_rad=config.sensors.encoder_step_rad,
         adc_step_m=config.sensors.adc_step_m(constants.beam_length_m),
         adc_count_limit=ADC_COUNT_LIMIT,
         position_noise_m=plant.position_noise_m,
         noise_pole=math.exp(-2.0 * math.pi * plant.noise_bandwidth_hz * sensor_period_s),
+        taps=tuple(
+            (tap_step(time_s, substep_s), change_m_s) for time_s, change_m_s in plant.disturbances
+        ),
     )
 
 
@@ -410,7 +458,9 @@ def design_key(config: Config) -> str:
 def minimum_time_key(config: Config) -> str:
     """Equal for two configs exactly when :func:`minimum_time_s` gives them one T*."""
     return json.dumps(
-        config.model_dump(mode="json", include={"model", "initial", "limits", "controller"}),
+        config.model_dump(
+            mode="json", include={"model", "initial", "limits", "controller", "task"}
+        ),
         sort_keys=True,
     )
 
@@ -443,5 +493,6 @@ def run_offline_with(
         reference_input_v=trace.reference_input_v,
         minimum_time_s=minimum_time,
         peak_abs_theta_rad=trace.peak_abs_theta_rad,
+        target_m=make_task(config).target_at(trace.time_s),
     )
     return OfflineRun(design=design, trace=trace, metrics=metrics)

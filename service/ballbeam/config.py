@@ -32,6 +32,13 @@ MAX_EXTENDS_DEPTH = 16
 DEFAULT_BUS_GROUP = "ff11:7079:7468:6f6e:6465:6d6f:6d63:6173"
 # The paper's constants: ModelSection's defaults (they are written only in core/model.py).
 _PAPER = PhysicalConstants()
+# [task] positions stay this far from the beam's centre (the paper's beam is ±0.216 m).
+TASK_POSITION_LIMIT_M = 0.2
+MAX_SETPOINTS = 10_000
+MAX_DISTURBANCES = 1_000
+MAX_TAP_M_S = 1.0
+MIN_TASK_PERIOD_S = 0.1
+MAX_TASK_PERIOD_S = 86400.0  # the run's own duration bound
 
 
 class _Section(BaseModel):
@@ -449,6 +456,122 @@ class PlantSection(_Section):
     )
     command_loss: float = Field(0.0, ge=0, lt=1, description="fault injection: drop fraction")
     sensor_loss: float = Field(0.0, ge=0, lt=1, description="fault injection: drop fraction")
+    disturbances: tuple[tuple[float, float], ...] = Field(
+        (), max_length=MAX_DISTURBANCES,
+        description="taps [[time_s, ball_velocity_change_m_s], ...]: the ball's velocity jumps "
+        "at the first physics step at or after time_s (plant time from the ball's release)",
+    )
+
+    @field_validator("disturbances")
+    @classmethod
+    def _taps(cls, taps: tuple[tuple[float, float], ...]) -> tuple[tuple[float, float], ...]:
+        for time_s, change_m_s in taps:
+            if not time_s > 0:
+                raise ValueError(f"a tap's time must be after the start (> 0), got {time_s:g} s")
+            if abs(change_m_s) > MAX_TAP_M_S:
+                raise ValueError(
+                    f"a tap's velocity change must be within ±{MAX_TAP_M_S:g} m/s, "
+                    f"got {change_m_s:g}"
+                )
+        for (before_s, _), (time_s, _) in itertools.pairwise(taps):
+            if not time_s > before_s:
+                raise ValueError(f"tap times must ascend: {time_s:g} s after {before_s:g} s")
+        return taps
+
+
+
+class SquareWaveSection(_Section):
+    """A square wave around ``offset_m``: +amplitude for the first half period, then −."""
+
+    amplitude_m: float = Field(gt=0, le=TASK_POSITION_LIMIT_M)
+    period_s: float = Field(ge=MIN_TASK_PERIOD_S, le=MAX_TASK_PERIOD_S)
+    offset_m: float = Field(0.0, ge=-TASK_POSITION_LIMIT_M, le=TASK_POSITION_LIMIT_M)
+
+    @model_validator(mode="after")
+    def _within_limit(self) -> SquareWaveSection:
+        _wave_within_limit(self.amplitude_m, self.offset_m)
+        return self
+
+
+class SineWaveSection(_Section):
+    """x_r(t) = offset_m + amplitude_m · sin(2π t / period_s)."""
+
+    amplitude_m: float = Field(gt=0, le=TASK_POSITION_LIMIT_M)
+    period_s: float = Field(ge=MIN_TASK_PERIOD_S, le=MAX_TASK_PERIOD_S)
+    offset_m: float = Field(0.0, ge=-TASK_POSITION_LIMIT_M, le=TASK_POSITION_LIMIT_M)
+
+    @model_validator(mode="after")
+    def _within_limit(self) -> SineWaveSection:
+        _wave_within_limit(self.amplitude_m, self.offset_m)
+        return self
+
+
+def _wave_within_limit(amplitude_m: float, offset_m: float) -> None:
+    if abs(offset_m) + amplitude_m > TASK_POSITION_LIMIT_M:
+        raise ValueError(
+            f"|offset_m| + amplitude_m = {abs(offset_m) + amplitude_m:g} m goes beyond "
+            f"±{TASK_POSITION_LIMIT_M} m"
+        )
+
+
+class TaskSection(_Section):
+    """Where the ball is to go: one fixed target (the paper's task: 0), a step schedule, a
+    square wave (a step schedule's shorthand) or a sine. At most one besides the target."""
+
+    target_m: float = Field(
+        0.0, ge=-TASK_POSITION_LIMIT_M, le=TASK_POSITION_LIMIT_M,
+        description="the ball's fixed target position [m]",
+    )
+    setpoints: tuple[tuple[float, float], ...] | None = Field(
+        None, min_length=1, max_length=MAX_SETPOINTS,
+        description="step schedule [[time_s, target_m], ...]: times ascending from 0",
+    )
+    square: SquareWaveSection | None = None
+    sine: SineWaveSection | None = None
+
+    @field_validator("setpoints")
+    @classmethod
+    def _schedule(
+        cls, setpoints: tuple[tuple[float, float], ...] | None
+    ) -> tuple[tuple[float, float], ...] | None:
+        if setpoints is None:
+            return None
+        if setpoints[0][0] != 0.0:
+            raise ValueError(f"the first setpoint must be at time 0, got {setpoints[0][0]:g} s")
+        for (before_s, _), (time_s, _) in itertools.pairwise(setpoints):
+            if not time_s > before_s:
+                raise ValueError(f"setpoint times must ascend: {time_s:g} s after {before_s:g} s")
+        if setpoints[-1][0] > MAX_TASK_PERIOD_S:
+            raise ValueError(
+                f"setpoint time {setpoints[-1][0]:g} s is beyond {MAX_TASK_PERIOD_S:g} s"
+            )
+        for time_s, target_m in setpoints:
+            if abs(target_m) > TASK_POSITION_LIMIT_M:
+                raise ValueError(
+                    f"setpoint target {target_m:g} m at {time_s:g} s is beyond "
+                    f"±{TASK_POSITION_LIMIT_M} m"
+                )
+        return setpoints
+
+    @model_validator(mode="after")
+    def _one_task(self) -> TaskSection:
+        given = [
+            name for name, present in (
+                ("target_m", self.target_m != 0.0), ("setpoints", self.setpoints is not None),
+                ("square", self.square is not None), ("sine", self.sine is not None),
+            ) if present
+        ]
+        if len(given) > 1:
+            raise ValueError(
+                f"give one of target_m, setpoints, square or sine, not {' and '.join(given)}"
+            )
+        return self
+
+    @property
+    def kind(self) -> Literal["fixed", "steps", "sine"]:
+        if self.sine is not None:
+            return "sine"
+        return "fixed" if self.setpoints is None and self.square is None else "steps"
 
 
 class SensorsSection(_Section):
@@ -554,6 +677,7 @@ class Config(_Section):
     observer: ObserverSection = ObserverSection()
     controller: ControllerSection = ControllerSection()
     plant: PlantSection = PlantSection()
+    task: TaskSection = TaskSection()
     sensors: SensorsSection = SensorsSection()
     run: RunSection = RunSection()
     bus: BusSection = BusSection()
@@ -588,6 +712,12 @@ class Config(_Section):
             raise ValueError(
                 f"plan.voltage_margin_v = {self.plan.voltage_margin_v} leaves no voltage under "
                 f"limits.voltage_v = {self.limits.voltage_v}"
+            )
+        taps = self.plant.disturbances
+        if taps and taps[-1][0] >= self.run.duration_s:
+            raise ValueError(
+                f"plant.disturbances: a tap at {taps[-1][0]:g} s is not within the run "
+                f"(run.duration_s = {self.run.duration_s:g})"
             )
         for metric, bound in self.expect.items():
             if metric not in EXPECTABLE_METRICS:

@@ -171,6 +171,9 @@ class ControllerDesign:
     # Real time: each command also carries the commands of the next this-many periods, for the
     # plant to apply while no newer command has come (0: none; the plant holds the last).
     lookahead_periods: int = 0
+    # The ball's target [m]: the law (plan, observer, gains) works in x − target_m (the linear
+    # model is the same under a shift of x); its estimates and references are reported in x.
+    target_m: float = 0.0
     # The schedule as Python floats, built once (the cycle reads no numpy scalars).
     _gain_rows: tuple[Row4, ...] = field(init=False, repr=False, compare=False)
     _offsets: tuple[float, ...] = field(init=False, repr=False, compare=False)
@@ -181,6 +184,7 @@ class ControllerDesign:
     servo_rows: tuple[float, float, float, float, float, float] = field(
         init=False, repr=False, compare=False
     )
+    _target_y: float = field(init=False, repr=False, compare=False)  # target_m, measured
 
     def __post_init__(self) -> None:
         N = self.offset_v.shape[0]
@@ -206,6 +210,7 @@ class ControllerDesign:
         (a00, a01, _, _), (a10, a11, _, _) = self.observer.Ad[0], self.observer.Ad[1]
         servo = (a00, a01, a10, a11, self.observer.Bd[0], self.observer.Bd[1])
         object.__setattr__(self, "servo_rows", servo)
+        object.__setattr__(self, "_target_y", self.target_m * self.observer.C[1][3])
 
     @property
     def n_steps(self) -> int:
@@ -217,6 +222,19 @@ class ControllerDesign:
             reading.angle_counts * self.angle_per_count,
             reading.position_counts * self.position_per_count,
         )
+
+    def law_measurement(self, reading: SensorReading) -> Row2:
+        """y as the law sees it: the position from the target (100·(x − target_m))."""
+        angle_y, position_y = self.measurement(reading)
+        if self.target_m == 0.0:
+            return angle_y, position_y
+        return angle_y, position_y - self._target_y
+
+    def in_x(self, row: Row4) -> Row4:
+        """A state of the law (x from the target) with its position in x."""
+        if self.target_m == 0.0:
+            return row
+        return row[0], row[1], row[2], row[3] + self.target_m
 
     def reference(self, position: float) -> tuple[Row4, float]:
         """x_d and u_d at path position ``position`` (cycles, interpolated between rows)."""
@@ -340,9 +358,9 @@ def starting_state(design: ControllerDesign) -> ControllerState:
 class CycleOutput:
     voltage_v: float  # clamped command sent to the plant
     requested_v: float  # the tracker's unclamped demand
-    estimate: Row4  # x̂[k | k]
+    estimate: Row4  # x̂[k | k], its position in x (not from the target)
     measured: bool  # False when the cycle coasted on the observer
-    reference: Row4  # x_d tracked this cycle
+    reference: Row4  # x_d tracked this cycle, its position in x
     reference_input_v: float  # u_d at the same path position
 
 
@@ -404,7 +422,7 @@ def control_cycle(
     """One control period. ``reading`` is None when no valid sensor frame arrived in time;
     ``lateness_ns`` (real time): how late the cycle started, skipped periods included."""
     deadzone_v = design.deadzone_at(state)
-    measurement = design.measurement(reading) if reading is not None else None
+    measurement = design.law_measurement(reading) if reading is not None else None
     if state.prediction is None:
         if measurement is None:
             raise ValueError("the first control cycle needs a sensor reading")
@@ -477,7 +495,8 @@ def control_cycle(
             last_positions=last_positions, lateness=lateness,
         ),
         CycleOutput(
-            voltage_v, requested_v, estimate, reading is not None, reference, reference_input_v
+            voltage_v, requested_v, design.in_x(estimate), reading is not None,
+            design.in_x(reference), reference_input_v,
         ),
     )
 

@@ -7,6 +7,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from ballbeam.core.task import Task
+
 SETTLE_BAND_M = 0.002
 # Rest (docs/design.md §6): |x| <= 0.5 mm and |θ| <= 0.5° from that instant to the end of the run.
 REST_POSITION_M = 5e-4
@@ -33,8 +35,8 @@ BENCH_FIGURES = (
 
 @dataclass(frozen=True)
 class RunMetrics:
-    settle_time_s: float | None  # first time after which |x| stays within 2 mm; None: never
-    overshoot_mm: float  # largest excursion past 0, on the side opposite the start
+    settle_time_s: float | None  # first time after which |x − target| stays within 2 mm
+    overshoot_mm: float  # largest excursion past the target, on the side opposite the start
     max_abs_theta_deg: float
     theta_violation_s: float  # time spent with |θ| beyond the limit
     max_abs_u_v: float
@@ -72,12 +74,49 @@ def rest_time(
     true_states: np.ndarray,
     position_band_m: float = REST_POSITION_M,
     theta_band_rad: float = REST_THETA_RAD,
+    target_m: float | np.ndarray = 0.0,
 ) -> float | None:
-    """First time after which |x| <= position band and |θ| <= angle band to the end; None if
-    the last sample is outside either."""
-    away_m = np.abs(true_states[:, 3]) > position_band_m
+    """First time after which |x − target| <= position band and |θ| <= angle band to the end;
+    None if the last sample is outside either. ``target_m``: a float, or one per sample (N,)."""
+    away_m = np.abs(true_states[:, 3] - target_m) > position_band_m
     tilted = np.abs(true_states[:, 0]) > theta_band_rad
     return inside_from(time_s, away_m | tilted)
+
+
+@dataclass(frozen=True)
+class SegmentRest:
+    """One segment of a task between two changes of target: from ``start_s`` (0 or a change)
+    to the next change or the run's end, with its ``target_m``; ``rest_after_s``: from
+    ``start_s`` to rest at the target within the segment (rest as :func:`rest_time`, the
+    segment's last sample its end); None: not at rest by then, or no sample in it."""
+
+    start_s: float
+    target_m: float
+    rest_after_s: float | None
+
+
+def segment_rest_times(
+    time_s: np.ndarray, true_states: np.ndarray, task: Task
+) -> tuple[SegmentRest, ...]:
+    """Rest after each change of target: the task's changes within the run (time_s (N,)
+    increasing, true_states (N, 4)) split it into segments; each is judged on its own samples
+    (a segment starts at its change, inclusive, and ends before the next)."""
+    time_s = np.asarray(time_s, dtype=float)
+    starts = np.concatenate(([min(0.0, float(time_s[0]))],
+                             task.change_times_s(0.0, float(time_s[-1]))))
+    segments = []
+    for index, start_s in enumerate(starts):
+        end_s = starts[index + 1] if index + 1 < len(starts) else math.inf
+        inside = (time_s >= start_s) & (time_s < end_s)
+        target_m = float(task.target_at(float(start_s)))
+        rest_s = None
+        if inside.any():
+            rest_s = rest_time(time_s[inside], true_states[inside], target_m=target_m)
+        segments.append(SegmentRest(
+            start_s=float(start_s), target_m=target_m,
+            rest_after_s=None if rest_s is None else rest_s - float(start_s),
+        ))
+    return tuple(segments)
 
 
 def total_variation(values: np.ndarray) -> float:
@@ -143,25 +182,28 @@ def compute_metrics(
     minimum_time_s: float | None = None,
     peak_abs_theta_rad: np.ndarray | None = None,
     voltage_time_s: np.ndarray | None = None,
+    target_m: float | np.ndarray = 0.0,
 ) -> RunMetrics:
     """time_s (N,) increasing; true_states (N, 4); voltage_v commands; reference (N,).
 
     reference_input_v (N,): the plan's u_d (for the input's total variation and its switches);
     minimum_time_s: T* from this start (for rest_ratio); peak_abs_theta_rad (N,): the largest
     |θ| over every physics step of each period (else the samples' |θ|); voltage_time_s: the
-    commands' own times where they are not sampled at time_s (a recorded run).
+    commands' own times where they are not sampled at time_s (a recorded run); target_m: the
+    task's target (a float, or x_r at each sample (N,)): settle, overshoot and rest are
+    measured from it.
     Each sample stands for the interval up to the next one (the last for the previous gap)."""
     if len(time_s) < 2:
         raise ValueError("metrics need at least two samples")
     gaps_s = np.diff(time_s, append=2 * time_s[-1] - time_s[-2])
     theta = true_states[:, 0]
-    position = true_states[:, 3]
+    position = true_states[:, 3] - target_m  # from the target
     start_sign = math.copysign(1.0, position[0]) if position[0] != 0 else 0.0
     if start_sign == 0.0:
         overshoot_m = float(np.max(np.abs(position)))
     else:
         overshoot_m = max(0.0, float(np.max(-start_sign * position)))
-    rest_s = rest_time(time_s, true_states)
+    rest_s = rest_time(time_s, true_states, target_m=target_m)
     peak = (
         np.abs(theta)
         if peak_abs_theta_rad is None
@@ -173,7 +215,9 @@ def compute_metrics(
         max_abs_theta_deg=math.degrees(float(np.max(peak))),
         theta_violation_s=float(np.sum(gaps_s[peak > theta_limit_rad])),
         max_abs_u_v=float(np.max(np.abs(voltage_v))),
-        tracking_rms_mm=1e3 * float(np.sqrt(np.mean((position - reference_position_m) ** 2))),
+        tracking_rms_mm=1e3 * float(
+            np.sqrt(np.mean((true_states[:, 3] - reference_position_m) ** 2))
+        ),
         rest_time_s=rest_s,
         rest_ratio=(
             rest_s / minimum_time_s

@@ -41,6 +41,19 @@ class EmulatedPlant:
     adc_count_limit: int
     position_noise_m: float
     noise_pole: float  # AR(1) pole of the band-limited sensor noise at the sensor rate
+    # Taps: (physics step n, Δv [m/s]), n ascending: at plant time n·substep_s from the ball's
+    # release its velocity jumps by Δv (``tap_step``).
+    taps: tuple[tuple[int, float], ...] = ()
+
+
+# Times are given in seconds and the steps counted: a time on a step (1.0 s = 10,000 steps of
+# 0.1 ms, which the division makes 10,000.000000000002) is that step, not the next.
+_STEP_TOLERANCE = 1e-9
+
+
+def tap_step(time_s: float, substep_s: float) -> int:
+    """The first physics step at or after ``time_s`` (≥ 1: a tap lands after the start)."""
+    return max(1, math.ceil(time_s / substep_s - _STEP_TOLERANCE))
 
 
 @dataclass(frozen=True)
@@ -66,6 +79,7 @@ class PlantPhysics:
 
     def __init__(self, params: EmulatedPlant) -> None:
         self.params = params
+        self._tap_steps = np.array([step for step, _ in params.taps], dtype=np.int64)
         true_model = LinearModel.from_gains(
             params.alpha, params.alpha_beta, params.gamma, C=np.zeros((2, 4))
         )
@@ -77,9 +91,39 @@ class PlantPhysics:
         # θ after each of n substeps: rows of Ad^j and bd_j, j = 1..n (the safety check).
         self._theta_rows: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
-    def advance(self, state: np.ndarray, command_v: float, substeps: int) -> np.ndarray:
-        """State after ``substeps`` substeps holding ``command_v``."""
-        return self._advance_driven(state, drive_voltage(self.params, command_v), substeps)
+    def advance(
+        self, state: np.ndarray, command_v: float, substeps: int, from_step: int = 0
+    ) -> np.ndarray:
+        """State after ``substeps`` substeps holding ``command_v``. ``from_step``: the physics
+        steps done since the ball's release (the plant's clock): taps due on the way apply."""
+        drive_v = drive_voltage(self.params, command_v)
+        taps = self._taps_within(from_step, substeps)
+        if not taps:
+            return self._advance_driven(state, drive_v, substeps)
+        for steps, change_m_s, _ in taps:
+            state = self._tap(self._advance_driven(state, drive_v, steps), change_m_s)
+        return self._advance_driven(state, drive_v, from_step + substeps - taps[-1][2])
+
+    def _taps_within(self, from_step: int, substeps: int) -> list[tuple[int, float, int]]:
+        """The taps at steps n, from_step < n ≤ from_step + substeps: (steps to go from the
+        one before, Δv, n)."""
+        steps = self._tap_steps
+        if not steps.size or substeps <= 0:
+            return []
+        first, last = (int(i) for i in np.searchsorted(
+            steps, (from_step, from_step + substeps), side="right"
+        ))
+        taps, done = [], from_step
+        for step, change_m_s in self.params.taps[first:last]:
+            taps.append((step - done, change_m_s, step))
+            done = step
+        return taps
+
+    @staticmethod
+    def _tap(state: np.ndarray, change_m_s: float) -> np.ndarray:
+        tapped = np.array(state, dtype=float)
+        tapped[BALL_VELOCITY] += change_m_s
+        return tapped
 
     def _advance_driven(self, state: np.ndarray, drive_v: float, substeps: int) -> np.ndarray:
         if not self.params.nonlinear_ball:
@@ -99,10 +143,25 @@ class PlantPhysics:
         return state
 
     def advance_with_peak(
-        self, state: np.ndarray, command_v: float, substeps: int
+        self, state: np.ndarray, command_v: float, substeps: int, from_step: int = 0
     ) -> tuple[np.ndarray, float]:
         """``advance``, and the largest |θ| at any of its physics steps (its end included): the
         safety promise is per physics step, not per sample."""
+        taps = self._taps_within(from_step, substeps)
+        if not taps:
+            return self._advance_with_peak(state, command_v, substeps)
+        peak = 0.0
+        for steps, change_m_s, _ in taps:
+            state, step_peak = self._advance_with_peak(state, command_v, steps)
+            state, peak = self._tap(state, change_m_s), max(peak, step_peak)
+        state, step_peak = self._advance_with_peak(
+            state, command_v, from_step + substeps - taps[-1][2]
+        )
+        return state, max(peak, step_peak)
+
+    def _advance_with_peak(
+        self, state: np.ndarray, command_v: float, substeps: int
+    ) -> tuple[np.ndarray, float]:
         if not self.params.nonlinear_ball:
             rows = self._theta_rows.get(substeps)
             if rows is None:

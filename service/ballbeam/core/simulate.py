@@ -84,15 +84,17 @@ def simulate_closed_loop(
     }
     output: CycleOutput | None = None
     period_ns = round(design.period_s * 1e9)
+    steps_done = 0  # the plant's clock in physics steps (its taps land on it)
 
     def drive(voltage_v: float) -> float:
         """One control period of physics at ``voltage_v``; the largest |θ| in it."""
-        nonlocal state, noise_m
+        nonlocal state, noise_m, steps_done
         peak_rad = abs(float(state[0]))
         for _ in range(sensor_periods_per_cycle):
             state, step_peak_rad = physics.advance_with_peak(
-                state, voltage_v, substeps_per_sensor_period
+                state, voltage_v, substeps_per_sensor_period, steps_done
             )
+            steps_done += substeps_per_sensor_period
             peak_rad = max(peak_rad, step_peak_rad)
             noise_m = next_noise(params, noise_m, rng)
         return peak_rad

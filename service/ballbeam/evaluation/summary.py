@@ -13,7 +13,8 @@ from typing import Any
 import numpy as np
 
 from ballbeam.core.metrics import compute_metrics
-from ballbeam.errors import LogFormatError
+from ballbeam.core.task import Task
+from ballbeam.errors import BallbeamError, LogFormatError
 from ballbeam.logs.reader import RunLog
 from ballbeam.logs.topics import LEGACY_STRUCT_TOPICS, STRUCT_TOPICS
 from ballbeam.protocol.frames import (
@@ -169,8 +170,11 @@ def summarise(run_log: RunLog, theta_limit_rad: float | None = None) -> dict[str
         raise LogFormatError(f"{run_log.path}: fewer than two plant-truth samples")
     if theta_limit_rad is None:
         theta_limit_rad = limit_from_log(run_log)
+    task = task_from_log(run_log)
+    # Truth after the last recorded reference: the reference beyond the plan, rest at the target.
     reference_at_truth = np.interp(
-        series.truth_time_s, series.reference_time_s, series.reference_states[:, 3], right=0.0
+        series.truth_time_s, series.reference_time_s, series.reference_states[:, 3],
+        right=float(task.target_at(float(series.truth_time_s[-1]))),
     )
     # u_d in force at each command (real time may skip cycles; a cut log may lack a few rows)
     reference_input_v = np.asarray(run_log.topics["/reference"].values["input_v"], dtype=float)
@@ -185,6 +189,7 @@ def summarise(run_log: RunLog, theta_limit_rad: float | None = None) -> dict[str
         reference_input_v=input_at_commands,
         minimum_time_s=minimum_time_from_log(run_log),
         voltage_time_s=series.cycle_time_s,
+        target_m=task.target_at(series.truth_time_s),
     ).as_dict()
     timing = run_log.topics["/timing"]
     enabled = run_log.topics["/command"].values["enable"] == 1
@@ -268,12 +273,26 @@ def minimum_time_from_log(run_log: RunLog) -> float | None:
     """T* from the run's recorded start and limits (None where the config is not usable)."""
     from ballbeam.assembly import minimum_time_s
     from ballbeam.config import config_from_mapping
-    from ballbeam.errors import BallbeamError
 
     try:
         return minimum_time_s(config_from_mapping(_resolved_config(run_log)))
     except BallbeamError:
         return None
+
+
+def task_from_log(run_log: RunLog) -> Task:
+    """The run's task, from its recorded ``[task]`` (a log from before the section: the
+    paper's, x = 0); LogFormatError if the recorded section is not a valid one."""
+    from pydantic import ValidationError
+
+    from ballbeam.assembly import task_of
+    from ballbeam.config import TaskSection
+
+    section = _resolved_config(run_log).get("task", {})
+    try:
+        return task_of(TaskSection.model_validate(section))
+    except (ValidationError, BallbeamError) as error:
+        raise LogFormatError(f"{run_log.path}: the recorded [task] is not usable") from error
 
 
 def limit_from_log(run_log: RunLog) -> float:

@@ -29,6 +29,9 @@ rest_from_cycle            ()        the plan's end (cycle): rest observer and g
 rest_observer_L            (4, 2)    present with a rest filter: its Kalman gain
 lookahead_periods          ()        present when each command carried the commands of this
                                      many periods after it (absent: none, the plant held)
+target_m                   ()        present when the ball's target was not 0: the law
+                                     works in x − target_m (reference_states, initial_state
+                                     and the gains are in it)
 rest_*                               present with rest gains: gain (4,), far_gain (4,)
                                      (optional), firm_gain (4,) and firm_cycles ()
                                      (optional), catch_gain (2,) and catch_cycles ()
@@ -121,6 +124,8 @@ def encode_design(design: ControllerDesign) -> bytes:
     }
     if design.lookahead_periods:
         arrays["lookahead_periods"] = _f8(design.lookahead_periods)
+    if design.target_m != 0.0:
+        arrays["target_m"] = _f8(design.target_m)
     if design.rest_observer is not None:
         arrays["rest_observer_L"] = _f8(design.rest_observer.L)
     rest = design.rest_gains
@@ -290,6 +295,7 @@ def decode_design(data: bytes, where: str) -> ControllerDesign:
             lookahead_periods=(
                 _count(arrays["lookahead_periods"]) if "lookahead_periods" in arrays else 0
             ),
+            target_m=_scalar(arrays["target_m"]) if "target_m" in arrays else 0.0,
         )
     except LogFormatError:
         raise

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from ballbeam.logs.recorder import ChannelHandle, Recorder
 from ballbeam.logs.topics import (
+    DISTURBANCE_SCHEMA,
+    DISTURBANCES,
     EVENT_SCHEMA,
     EVENTS,
     FAULTS,
@@ -29,6 +31,9 @@ class RunRecording:
             {name: recorder.add_json_channel(name, "ballbeam/Event", EVENT_SCHEMA)
              for name in JSON_TOPICS}
         )
+        self._handles[DISTURBANCES] = recorder.add_json_channel(
+            DISTURBANCES, "ballbeam/Disturbance", DISTURBANCE_SCHEMA
+        )
 
     def write(self, topic: StructTopic[R], log_time_ns: int, record: R) -> None:
         self.recorder.record(self._handles[topic.name], log_time_ns, record)
@@ -38,6 +43,15 @@ class RunRecording:
 
     def fault(self, log_time_ns: int, cycle: int, kind: str, detail: str) -> None:
         self._note(FAULTS, log_time_ns, cycle, kind, detail)
+
+    def tap(
+        self, log_time_ns: int, cycle: int, time_s: float, plant_step: int, change_m_s: float
+    ) -> None:
+        """A tap on the ball at plant time ``time_s`` (physics step ``plant_step``)."""
+        self.recorder.record(self._handles[DISTURBANCES], log_time_ns, {
+            "cycle": cycle, "time_s": time_s, "plant_step": plant_step,
+            "ball_velocity_change_m_s": change_m_s,
+        })
 
     def _note(self, topic: str, log_time_ns: int, cycle: int, kind: str, detail: str) -> None:
         self.recorder.record(

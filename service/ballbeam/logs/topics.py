@@ -158,6 +158,18 @@ EVENT_SCHEMA = {
 }
 FAULTS = "/faults"
 EVENTS = "/events"
+# The taps of [plant] disturbances, each logged at the first cycle whose sample shows it.
+DISTURBANCES = "/disturbances"
+DISTURBANCE_SCHEMA = {
+    "type": "object",
+    "properties": {
+        "cycle": {"type": "integer"},
+        "time_s": {"type": "number"},
+        "plant_step": {"type": "integer"},
+        "ball_velocity_change_m_s": {"type": "number"},
+    },
+    "required": ["cycle", "time_s", "plant_step", "ball_velocity_change_m_s"],
+}
 
 STRUCT_TOPICS: dict[str, StructSchema] = {
     topic.name: topic.schema

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import can
 import numpy as np
 
-from ballbeam.assembly import sensor_periods_per_cycle
+from ballbeam.assembly import plant_parameters, sensor_periods_per_cycle
 from ballbeam.config import Config
 from ballbeam.core.control import (
     ControllerDesign,
@@ -169,6 +169,14 @@ class ControllerDaemon:
         self.log_time_ns = self.wall_origin_ns
         self.theta_limit_rad = config.limits.theta_rad
         self.outside_limit = False
+        # The plant's taps, to log at the first cycle whose sample shows each (the plant's
+        # clock counts physics steps from the ball's release, the first cycle's command).
+        plant = plant_parameters(config)
+        steps_per_cycle = sensor_periods_per_cycle(config) * config.plant.physics_substeps
+        self.taps_to_log = [
+            (-(-step // steps_per_cycle), step, step * plant.substep_s, change_m_s)
+            for step, change_m_s in plant.taps
+        ]
 
     @property
     def stats(self) -> DaemonStats:
@@ -266,6 +274,9 @@ class ControllerDaemon:
             REFERENCE, at_ns, ReferenceRecord(cycle, *output.reference, output.reference_input_v)
         )
         self._watch_theta(output.estimate[0])
+        while self.taps_to_log and self.taps_to_log[0][0] <= cycle:
+            tap_cycle, step, time_s, change_m_s = self.taps_to_log.pop(0)
+            self.recording.tap(at_ns, tap_cycle, time_s, step, change_m_s)
 
     def _learn_period_offset(self, sample_counter: int, cycle: int) -> None:
         """Plant periods and cycles both follow the clock, so the plant period of cycle k is
