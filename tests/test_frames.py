@@ -236,8 +236,12 @@ def test_matches_cantools_bytes_and_values(
     assert frame.voltage_v == decoded["Voltage"]
 
 
-@given(counters, st.integers(0, len(PLANT_STATUS_FIELDS) - 1), st.booleans(),
-       st.integers(0, PLANT_STATUS_VALUE_MAX))
+@given(
+    counters,
+    st.integers(0, len(PLANT_STATUS_FIELDS) - 1),
+    st.booleans(),
+    st.integers(0, PLANT_STATUS_VALUE_MAX),
+)
 def test_plant_status_matches_cantools_bytes_and_round_trips(
     contract: FrameContract, counter: int, field: int, final: bool, value: int
 ) -> None:
@@ -648,8 +652,12 @@ def test_raw_signal_reads_many_recorded_frames_as_decode_reads_one() -> None:
     contract = FrameContract.load()
     rng = random.Random(5)
     frames = [
-        SensorFrame(rng.randrange(256), rng.randrange(-2000, 2000), rng.randrange(-30000, 30000),
-                    rng.randrange(4))
+        SensorFrame(
+            rng.randrange(256),
+            rng.randrange(-2000, 2000),
+            rng.randrange(-30000, 30000),
+            rng.randrange(4),
+        )
         for _ in range(200)
     ]
     data = np.array([list(contract.encode(frame)[1]) for frame in frames], dtype=np.uint8)
@@ -669,9 +677,7 @@ def test_counter_unwrap_follows_wraps_gaps_and_old_frames() -> None:
     larger step, an old frame gets the index it had."""
     unwrap = CounterUnwrap()
     heard = [250, 251, 255, 0, 1, 3, 2, 130]
-    assert [unwrap.index(counter) for counter in heard] == [
-        250, 251, 255, 256, 257, 259, 258, 386
-    ]
+    assert [unwrap.index(counter) for counter in heard] == [250, 251, 255, 256, 257, 259, 258, 386]
 
 
 def test_a_lookahead_round_trips_at_1_mv_and_refuses_what_the_contract_cannot_carry() -> None:
@@ -701,3 +707,23 @@ def test_a_lookahead_round_trips_at_1_mv_and_refuses_what_the_contract_cannot_ca
     with pytest.raises(FrameRejectedError) as short:
         decode_lookahead(encoded[:-1])
     assert short.value.reason == "length"
+
+
+@settings(
+    max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(st.floats(min_value=-5.5, max_value=5.5, allow_nan=False))
+def test_offline_drives_the_command_as_the_frame_carries_it(
+    contract: FrameContract, voltage_v: float
+) -> None:
+    """The offline loop's rounding of a command is the codec's, to the bit (offline and
+    lock-step runs are then the same run)."""
+    from ballbeam.core.plant import command_as_received, lookahead_as_received
+    from ballbeam.protocol.frames import decode_lookahead, encode_lookahead
+
+    frame = contract.decode(
+        VOLTAGE_COMMAND_ID, contract.encode_voltage_command(0, voltage_v, True, 0)
+    )
+    assert isinstance(frame, VoltageCommand)
+    assert frame.voltage_v == command_as_received(voltage_v)
+    assert decode_lookahead(encode_lookahead((voltage_v,))) == (lookahead_as_received(voltage_v),)

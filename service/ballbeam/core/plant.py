@@ -56,6 +56,22 @@ def tap_step(time_s: float, substep_s: float) -> int:
     return max(1, math.ceil(time_s / substep_s - _STEP_TOLERANCE))
 
 
+# The voltage frame carries the command in 1 mV steps (the DBC's Voltage signal; its look-ahead
+# slots too): a plant drives the command as received, so the offline loop rounds it alike.
+COMMAND_STEP_V = 0.001
+
+
+def command_as_received(voltage_v: float) -> float:
+    """The voltage a plant gets for ``voltage_v`` sent in a command frame (1 mV, rounded half
+    to even, decoded as raw × step: the frame codec's own arithmetic)."""
+    return round(voltage_v / COMMAND_STEP_V) * COMMAND_STEP_V
+
+
+def lookahead_as_received(voltage_v: float) -> float:
+    """The same for a look-ahead slot, which the codec decodes as raw / 1000."""
+    return round(voltage_v * 1000.0) / 1000.0
+
+
 @dataclass(frozen=True)
 class SensorReading:
     """What the sensor frame carries: raw integer counts."""

@@ -24,7 +24,9 @@ from ballbeam.core.control import (
 from ballbeam.core.plant import (
     PlantPhysics,
     SensorReading,
+    command_as_received,
     initial_noise,
+    lookahead_as_received,
     next_noise,
     read_sensors,
 )
@@ -118,15 +120,19 @@ def simulate_closed_loop(
         if output is not None and (late := min(missed.get(cycle, 0), n_cycles - cycle)):
             lookahead_v = lookahead_voltages(design, controller)  # sent with the last command
             for index in range(late):  # no command comes: the plant goes on without one
-                record(output, lookahead_v[min(index, len(lookahead_v) - 1)]
-                       if lookahead_v else output.voltage_v, None)
+                drive_v = (
+                    lookahead_as_received(lookahead_v[min(index, len(lookahead_v) - 1)])
+                    if lookahead_v
+                    else command_as_received(output.voltage_v)
+                )
+                record(output, drive_v, None)
             controller = coast_cycles(design, controller, output.voltage_v, late, lookahead_v)
             cycle += late
             if cycle >= n_cycles:
                 break
         reading: SensorReading = read_sensors(params, state, noise_m)
         controller, output = control_cycle(design, controller, reading, late * period_ns)
-        record(output, output.voltage_v, reading)
+        record(output, command_as_received(output.voltage_v), reading)
         cycle, late = cycle + 1, 0
     arrays = {name: np.array(values) for name, values in columns.items()}
     return SimulationTrace(time_s=np.arange(n_cycles) * design.period_s, **arrays)
