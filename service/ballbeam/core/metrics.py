@@ -80,6 +80,38 @@ def rest_time(
     return inside_from(time_s, away_m | tilted)
 
 
+def outside_rest_band(
+    true_states: np.ndarray,
+    target_m: float = 0.0,
+    position_band_m: float = REST_POSITION_M,
+    theta_band_rad: float = REST_THETA_RAD,
+) -> np.ndarray:
+    """(N,) True where the ball is more than the band from ``target_m`` or the servo more than
+    its band from level."""
+    away_m = np.abs(true_states[:, 3] - target_m) > position_band_m
+    tilted = np.abs(true_states[:, 0]) > theta_band_rad
+    return np.asarray(away_m | tilted)
+
+
+def first_entry_time(
+    time_s: np.ndarray, true_states: np.ndarray, target_m: float = 0.0
+) -> float | None:
+    """First sample time inside the rest band (whether it stays or not); None: never."""
+    inside = np.flatnonzero(~outside_rest_band(true_states, target_m))
+    return float(time_s[inside[0]]) if inside.size else None
+
+
+def relapse_s(time_s: np.ndarray, true_states: np.ndarray, target_m: float = 0.0) -> float | None:
+    """Rest time less the first entry into the rest band: 0 when the ball stays from its first
+    entry; a limit cycle or a servo creeping out and back in shows as the time lost. None when
+    the run ends outside the band (it never rests)."""
+    rest_s = inside_from(time_s, outside_rest_band(true_states, target_m))
+    entry_s = first_entry_time(time_s, true_states, target_m)
+    if rest_s is None or entry_s is None:
+        return None
+    return rest_s - entry_s
+
+
 def total_variation(values: np.ndarray) -> float:
     """Σ|Δv| over the sequence."""
     return float(np.sum(np.abs(np.diff(np.asarray(values, dtype=float)))))
