@@ -300,26 +300,29 @@ def build_cases(
     extra: Sequence[str],
     seeds: int,
     plant_starts: int,
+    plant_seeds: int,
     targets: Sequence[float],
     target_overrides: dict[float, list[str]],
 ) -> list[Case]:
     """Nominal: every drawn start × ``seeds`` noise seeds. Every other plant: the paper's
     start and ``plant_starts`` − 1 drawn ones (rotating through the draw from set to set, so
-    together the sets see every stratum) × ``seeds``."""
+    together the sets see every stratum) × ``plant_seeds``."""
     cases = []
     paper = starts[0]
     drawn = list(enumerate(starts[1:]))
     for set_index, (name, more) in enumerate(sets.items()):
+        set_seeds = seeds
         if name == "nominal":
             chosen = drawn
         else:
+            set_seeds = plant_seeds
             k = min(plant_starts - 1, len(drawn))
             offset = set_index * k
             chosen = [(-1, paper)] + [drawn[(offset + j) % len(drawn)] for j in range(k)]
         for target in targets:
             for index, start in chosen:
                 duration_s = start.t_star_s + EXTRA_S  # T* to this target: see main
-                for seed in range(1, seeds + 1):
+                for seed in range(1, set_seeds + 1):
                     overrides = (
                         *extra, *start.overrides(), f"plant.seed={seed}",
                         f"run.duration_s={duration_s:.3f}", *more, *target_overrides[target],
@@ -397,7 +400,8 @@ def print_report(
 ) -> None:
     where = "over the bus, lock-step" if args.bus else "offline"
     print(f"config {config_path} {' '.join(extra)} ({where}); draw seed {args.draw_seed}, "
-          f"{args.seeds} noise seed(s) a start, runs of T* + {EXTRA_S:.0f} s")
+          f"noise seeds a start {args.seeds} (other plants {args.plant_seeds}), runs of T* + "
+          f"{EXTRA_S:.0f} s")
     b = BOUNDS
     header = (
         f"{'set':<24}{'runs':>5}{'rest/floor':>11}{'':>9}{'TV':>6}{'dither':>7}{'step':>6}"
@@ -472,6 +476,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", type=int, help="noise seeds a start (default 5; quick 2)")
     parser.add_argument("--plant-starts", type=int,
                         help="starts a non-nominal plant is run from (default 6; quick 2)")
+    parser.add_argument("--plant-seeds", type=int,
+                        help="noise seeds a start, other plants (default: --seeds; quick 1)")
     parser.add_argument("--draw-seed", type=int, default=27, help="seed of the starts' draw")
     parser.add_argument("--target", type=float, action="append", help="target x [m] (default 0)")
     parser.add_argument("--json", type=Path, help="write every run's figures here")
@@ -487,8 +493,14 @@ def main(argv: list[str] | None = None) -> int:
     args.plant_starts = (
         args.plant_starts if args.plant_starts is not None else (2 if quick else 6)
     )
-    if args.starts < 1 or args.seeds < 1 or args.plant_starts < 1 or args.processes < 1:
-        return _usage_error("--starts, --seeds, --plant-starts and --processes must be ≥ 1")
+    args.plant_seeds = (
+        args.plant_seeds if args.plant_seeds is not None else (1 if quick else args.seeds)
+    )
+    counts = (args.starts, args.seeds, args.plant_starts, args.plant_seeds, args.processes)
+    if min(counts) < 1:
+        return _usage_error(
+            "--starts, --seeds, --plant-starts, --plant-seeds and --processes must be ≥ 1"
+        )
     targets = args.target or [0.0]
     if any(abs(target) > 0.2 for target in targets):
         return _usage_error("targets must lie within ±0.2 m")
@@ -528,8 +540,8 @@ def main(argv: list[str] | None = None) -> int:
                 args.starts, args.draw_seed, args.config, args.overrides, target, pool
             )
             cases = build_cases(
-                [paper, *drawn], sets, args.overrides, args.seeds, args.plant_starts, [target],
-                target_overrides,
+                [paper, *drawn], sets, args.overrides, args.seeds, args.plant_starts,
+                args.plant_seeds, [target], target_overrides,
             )
             if args.bus:
                 work = pool.imap_unordered(
