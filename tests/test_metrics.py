@@ -11,8 +11,10 @@ from ballbeam.core.metrics import (
     SegmentRest,
     compute_metrics,
     dither_hz,
+    first_entry_time,
     input_tv_ratio,
     largest_step_v,
+    relapse_s,
     rest_time,
     segment_rest_times,
     settle_time,
@@ -163,3 +165,39 @@ def test_a_square_waves_segments_are_its_half_periods() -> None:
     assert all(s.rest_after_s == 0.0 for s in segments)
     # A fixed target is one segment, the whole run.
     assert segment_rest_times(t, states, FixedTarget(0.0)) == (SegmentRest(0.0, 0.0, None),)
+
+
+def test_relapse_is_rest_less_the_first_entry_into_the_rest_band() -> None:
+    t = np.arange(12) * 0.1
+    level = np.zeros(12)
+    # In the band from t = 0.3 s and stays: no relapse.
+    x = np.array([0.01, 0.004, 0.001, 0.0004, 0.0, -0.0003, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    assert first_entry_time(t, _states(level, x)) == pytest.approx(0.3)
+    assert relapse_s(t, _states(level, x)) == 0.0
+    # Enters at 0.3 s, drifts out to 0.7 mm at 0.6 s, back in from 0.8 s: 0.5 s lost.
+    x_out = x.copy()
+    x_out[6:8] = [0.0007, -0.0006]
+    assert first_entry_time(t, _states(level, x_out)) == pytest.approx(0.3)
+    assert rest_time(t, _states(level, x_out)) == pytest.approx(0.8)
+    assert relapse_s(t, _states(level, x_out)) == pytest.approx(0.5)
+    # The ball sits in its band but the servo creeps out past 0.5° and back: a relapse too.
+    creeping = np.zeros(12)
+    creeping[5] = math.radians(0.6)
+    assert relapse_s(t, _states(creeping, x)) == pytest.approx(0.3)
+    # Never in the band, or out at the end (a limit cycle the run cuts off): no rest, no figure.
+    assert first_entry_time(t, _states(level, np.full(12, 0.01))) is None
+    assert relapse_s(t, _states(level, np.full(12, 0.01))) is None
+    x_end = x.copy()
+    x_end[-1] = 0.001
+    assert first_entry_time(t, _states(level, x_end)) == pytest.approx(0.3)
+    assert relapse_s(t, _states(level, x_end)) is None
+
+
+def test_relapse_about_a_target() -> None:
+    t = np.arange(6) * 0.1
+    target_m = -0.1
+    x = target_m + np.array([0.05, 0.0004, 0.0008, 0.0, 0.0001, 0.0])
+    states = _states(np.zeros(6), x)
+    assert first_entry_time(t, states, target_m) == pytest.approx(0.1)
+    assert relapse_s(t, states, target_m) == pytest.approx(0.2)
+    assert first_entry_time(t, states) is None  # about 0 the ball is never in the band

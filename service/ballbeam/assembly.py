@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -24,6 +25,9 @@ from ballbeam.core.simulate import SimulationTrace, simulate_closed_loop
 from ballbeam.core.task import FixedTarget, SineWave, SquareWave, StepSchedule, Task
 from ballbeam.core.tracker import stationary_gain, synthesize_discrete
 from ballbeam.errors import ConfigError, PlanningError
+
+if TYPE_CHECKING:  # the floor's module loads the LP solver: only when a floor is asked for
+    from ballbeam.core.floor import OwnFloor
 
 DEFAULT_POSITION_NOISE_M = 2e-4
 
@@ -132,6 +136,28 @@ def minimum_time_s(config: Config) -> float | None:
     except PlanningError:
         return None
     return plan.duration_s
+
+
+def plant_floor(config: Config, target_m: float = 0.0) -> OwnFloor | None:
+    """The true plant's own floor from the config's start to rest at ``target_m``
+    (core/floor.py): its α and γ, the command bound (or its saturation, if lower) less its dead
+    zone, zero margins, the controller's grid as for T*; None where no such path exists."""
+    from ballbeam.core.floor import own_floor
+
+    plant = config.plant
+    try:
+        return own_floor(
+            true_model(config),
+            config.initial.state(),
+            voltage_limit_v=min(config.limits.voltage_v, plant.saturation_v),
+            deadzone_v=plant.deadzone_v,
+            theta_max_rad=config.limits.theta_rad,
+            step_s=config.controller.period_s,
+            target_m=target_m,
+            nonlinear_ball=plant.nonlinear_ball,
+        )
+    except PlanningError:
+        return None
 
 
 def controller_design(config: Config, plan: Plan | None = None) -> ControllerDesign:

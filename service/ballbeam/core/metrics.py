@@ -78,9 +78,9 @@ def rest_time(
 ) -> float | None:
     """First time after which |x − target| <= position band and |θ| <= angle band to the end;
     None if the last sample is outside either. ``target_m``: a float, or one per sample (N,)."""
-    away_m = np.abs(true_states[:, 3] - target_m) > position_band_m
-    tilted = np.abs(true_states[:, 0]) > theta_band_rad
-    return inside_from(time_s, away_m | tilted)
+    return inside_from(
+        time_s, outside_rest_band(true_states, target_m, position_band_m, theta_band_rad)
+    )
 
 
 @dataclass(frozen=True)
@@ -117,6 +117,38 @@ def segment_rest_times(
             rest_after_s=None if rest_s is None else rest_s - float(start_s),
         ))
     return tuple(segments)
+
+
+def outside_rest_band(
+    true_states: np.ndarray,
+    target_m: float | np.ndarray = 0.0,
+    position_band_m: float = REST_POSITION_M,
+    theta_band_rad: float = REST_THETA_RAD,
+) -> np.ndarray:
+    """(N,) True where the ball is more than the band from ``target_m`` (a float, or one per
+    sample) or the servo more than its band from level."""
+    away_m = np.abs(true_states[:, 3] - target_m) > position_band_m
+    tilted = np.abs(true_states[:, 0]) > theta_band_rad
+    return np.asarray(away_m | tilted)
+
+
+def first_entry_time(
+    time_s: np.ndarray, true_states: np.ndarray, target_m: float = 0.0
+) -> float | None:
+    """First sample time inside the rest band (whether it stays or not); None: never."""
+    inside = np.flatnonzero(~outside_rest_band(true_states, target_m))
+    return float(time_s[inside[0]]) if inside.size else None
+
+
+def relapse_s(time_s: np.ndarray, true_states: np.ndarray, target_m: float = 0.0) -> float | None:
+    """Rest time less the first entry into the rest band: 0 when the ball stays from its first
+    entry; a limit cycle or a servo creeping out and back in shows as the time lost. None when
+    the run ends outside the band (it never rests)."""
+    rest_s = inside_from(time_s, outside_rest_band(true_states, target_m))
+    entry_s = first_entry_time(time_s, true_states, target_m)
+    if rest_s is None or entry_s is None:
+        return None
+    return rest_s - entry_s
 
 
 def total_variation(values: np.ndarray) -> float:
