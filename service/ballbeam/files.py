@@ -126,6 +126,25 @@ def write_new(path: StrPath, content: bytes | Callable[[BinaryIO], None]) -> Non
             os.unlink(temporary)
 
 
+def replace_file(path: StrPath, content: bytes | Callable[[BinaryIO], None]) -> None:
+    """Write a file whole that takes the place of a command's own earlier output (a resumed
+    study's table and plots): into a temporary file beside it, then renamed over it. rename()
+    replaces a link standing at ``path`` itself, never the file it points to."""
+    temporary, stream = temporary_beside(path)
+    try:
+        with stream:
+            if isinstance(content, bytes):
+                stream.write(content)
+            else:
+                content(stream)
+            stream.flush()
+            os.fsync(stream.fileno())
+        os.replace(temporary, path)
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(temporary)
+
+
 def _same_file(a: StrPath, b: StrPath) -> bool:
     try:
         return os.path.samefile(a, b)
