@@ -32,9 +32,11 @@ def kill_one(log_dir: Path, delay_s: float) -> tuple[bool, float | None, str]:
 
     def on_started(processes: dict[str, Any]) -> None:
         def kill() -> None:
-            # From the moment the daemon has opened its log (it may still be starting before).
+            # From the moment the daemon has begun its log (`ballbeam run` creates it empty
+            # before the daemon starts; the daemon's first write is its header).
             give_up = time.monotonic() + 60
-            while not any(log_dir.glob("*.mcap")) and time.monotonic() < give_up:
+            while not any(p.stat().st_size for p in log_dir.glob("*.mcap")) \
+                    and time.monotonic() < give_up:
                 time.sleep(0.01)
             time.sleep(delay_s)
             killed_at_ns.append(time.time_ns())

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from ballbeam.errors import RecorderError
+from ballbeam.errors import OutputExistsError, RecorderError
 from ballbeam.logs import PROFILE, Recorder, StructSchema, read_log
 
 CAN = StructSchema(
@@ -161,10 +161,11 @@ def test_round_trip_on_disk(tmp_path: Path) -> None:
 
 def test_a_log_whose_directory_takes_no_new_files_is_still_written(tmp_path: Path) -> None:
     """The chunk-index scratch file goes next to the log where it can; where it cannot (here
-    a path under /proc/self/fd, which refuses new files even to root) it goes elsewhere."""
+    a file open under its /proc/self/fd name, a directory that refuses new files even to
+    root) it goes elsewhere."""
     target = tmp_path / "run.mcap"
     with target.open("wb") as opened:
-        sent = _write_run(f"/proc/self/fd/{opened.fileno()}", 1500)
+        sent = _write_run(opened, 1500, name=f"/proc/self/fd/{opened.fileno()}")
     data = target.read_bytes()
     _check_with_mcap(data, sent)
     _check_with_read_log(data, sent)
@@ -318,8 +319,8 @@ def test_missing_directory_raises_recorder_error(tmp_path: Path) -> None:
     assert isinstance(info.value, OSError) and info.value.errno == errno.ENOENT
 
 
-def test_path_that_is_a_directory_raises_recorder_error(tmp_path: Path) -> None:
-    with pytest.raises(RecorderError, match="Is a directory"):
+def test_path_that_is_a_directory_is_refused_as_there_already(tmp_path: Path) -> None:
+    with pytest.raises(OutputExistsError, match="exists"):
         Recorder(tmp_path)
 
 
@@ -333,8 +334,9 @@ def test_unwritable_location_raises_recorder_error(tmp_path: Path) -> None:
 
 @pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full")
 def test_full_disk_at_start_raises_recorder_error() -> None:
-    with pytest.raises(RecorderError) as info:
-        Recorder("/dev/full")
+    # A log is a new file: the full disk is /dev/full opened and passed with its name.
+    with open("/dev/full", "wb") as full, pytest.raises(RecorderError) as info:
+        Recorder(full, name="/dev/full")
     assert info.value.errno == errno.ENOSPC and "/dev/full" in str(info.value)
 
 

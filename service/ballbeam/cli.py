@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -113,8 +114,10 @@ def command_plan(args: argparse.Namespace) -> int:
 def command_simulate(args: argparse.Namespace) -> int:
     from ballbeam.assembly import run_offline
     from ballbeam.evaluation.plots import plot_run
+    from ballbeam.files import check_new_outputs
 
     config = config_from_arguments(args)
+    check_new_outputs([args.plot])  # before the simulation, not after
     result = run_offline(config)
     metrics = result.metrics.as_dict()
     if args.plot:
@@ -146,23 +149,27 @@ def command_simulate(args: argparse.Namespace) -> int:
 
 
 def command_daemon(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
+    from ballbeam.files import remove_if_empty
     from ballbeam.runtime.daemon.loop import PlantLostError
     from ballbeam.runtime.daemon.node import run_daemon
     from ballbeam.runtime.exit_codes import EXIT_PLANT_LOST, exit_code
-    from ballbeam.runtime.process import new_log_path, secret_from_arguments
+    from ballbeam.runtime.process import log_from_arguments, secret_from_arguments
 
     configure_logging()
     config = config_from_arguments(args)
     live_port = _live_port(args)
-    log_path = Path(args.log) if args.log else new_log_path(config.run.log_dir, config.plan.kind)
     secret = secret_from_arguments(args)
+    log_path, log_stream = log_from_arguments(args, config)
     try:
-        end_reason = run_daemon(config, log_path, args.config, live_port=live_port, secret=secret)
+        end_reason = run_daemon(config, log_path, args.config, live_port=live_port, secret=secret,
+                                log_stream=log_stream)
     except PlantLostError as error:
         print(f"ballbeam: error: {error}", file=sys.stderr)
         return EXIT_PLANT_LOST
+    except BaseException:
+        if log_stream is not None:
+            remove_if_empty(log_path)  # made for this run, which never began to record
+        raise
     print(log_path)
     code = exit_code(end_reason)
     if code:
@@ -235,17 +242,24 @@ def _read_log_or_fail(path: str) -> Any:
 
 
 def command_recover(args: argparse.Namespace) -> int:
-    from ballbeam.errors import LogFormatError
+    from ballbeam.errors import LogFormatError, OutputExistsError
+    from ballbeam.files import exists_message
     from ballbeam.logs.recover import recover_log, recovered_path
 
     source = Path(args.log)
     destination = Path(args.output) if args.output else recovered_path(source)
-    if destination.exists():
-        raise LogFormatError(f"{destination} exists; name another with --output")
+    if os.path.lexists(destination):
+        raise OutputExistsError(f"{exists_message(destination)}; name another with --output")
     try:
         recovery = recover_log(source, destination)
+    except OutputExistsError as error:  # it appeared while recovering
+        raise OutputExistsError(f"{error}; name another with --output") from error
     except FileNotFoundError as error:
-        raise LogFormatError(f"cannot open log {source}: not found") from error
+        if not source.exists():
+            raise LogFormatError(f"cannot open log {source}: not found") from error
+        raise LogFormatError(
+            f"cannot write {destination}: {error.strerror or error} ({error.filename})"
+        ) from error
     except OSError as error:
         raise LogFormatError(f"cannot recover {source}: {error.strerror or error}") from error
     report = {
@@ -267,7 +281,10 @@ def command_recover(args: argparse.Namespace) -> int:
 
 def command_replay(args: argparse.Namespace) -> int:
     from ballbeam.evaluation.summary import summarise
+    from ballbeam.files import check_new_outputs
 
+    # Before any work: an output that is there already (the log itself above all) is refused.
+    check_new_outputs([args.plot, args.report], inputs=[args.log])
     run_log = _read_log_or_fail(args.log)
     summary = summarise(run_log)
     summary["log_path"] = args.log
@@ -332,7 +349,9 @@ def command_regress(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from ballbeam.evaluation import regress
+    from ballbeam.files import check_new_outputs
 
+    check_new_outputs([args.junit_xml])  # before the scenarios run, not after
     paths = regress.discover(args.scenarios)
     with tqdm(total=len(paths), unit="scenario", file=sys.stderr, disable=args.json) as bar:
 
@@ -504,7 +523,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_config_arguments(daemon)
     add_secret_argument(daemon)
-    daemon.add_argument("--log", metavar="MCAP", help="log file (default: a new one in logs/)")
+    daemon.add_argument(
+        "--log", metavar="MCAP",
+        help="log file, a new one (default: a new one in run.log_dir); never over a file",
+    )
+    daemon.add_argument(
+        "--log-fd", type=int, metavar="N",
+        help="record to the new, empty file open on descriptor N, named by --log (what ballbeam "
+        "run passes: it creates the file)",
+    )
     _add_live_arguments(daemon)
     daemon.set_defaults(handler=command_daemon)
 

@@ -29,6 +29,11 @@ class LogFormatError(BallbeamError, ValueError):
     """A file is not a readable ballbeam MCAP log."""
 
 
+class OutputExistsError(BallbeamError, FileExistsError):
+    """A file a command would write is already there (a file, a link, anything): nothing is
+    ever written over or through it."""
+
+
 class RecorderError(BallbeamError, OSError):
     """The run recorder cannot write its log."""
 

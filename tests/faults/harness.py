@@ -455,6 +455,12 @@ def assert_settles_like(outcome: Outcome, clean: Outcome) -> None:
     )
 
 
+def log_started(directory: Path) -> bool:
+    """A daemon has begun its log in ``directory`` (``ballbeam run`` creates the file empty,
+    before the daemon starts; the daemon's first write is its header)."""
+    return any(path.stat().st_size > 0 for path in directory.glob("*.mcap"))
+
+
 def one_error_line(stderr: str) -> str:
     assert "Traceback" not in stderr, stderr
     lines = [line for line in stderr.splitlines() if line.strip()]

@@ -256,7 +256,7 @@ def test_the_launcher_hands_the_secret_through_a_pipe_and_never_in_argv_or_env(
     finally:
         launcher.secrets.token_bytes = real_token_bytes  # type: ignore[assignment]
     assert result.daemon_exit == 0
-    keys = [token for token in drawn if len(token) == 32]  # new_log_path draws 3 bytes too
+    keys = [token for token in drawn if len(token) == 32]  # new_log_file draws 3 bytes too
     assert len(keys) == 1
     secret = keys[0]
     for name, (argv, environ) in seen.items():

@@ -18,7 +18,7 @@ import pytest
 from ballbeam.logs.reader import read_log
 
 from ..conftest import PAPER, REPO, ballbeam_argv
-from .harness import START_TIMEOUT_S, shutdown_frames, summary_meta
+from .harness import START_TIMEOUT_S, log_started, shutdown_frames, summary_meta
 
 
 def children_of(pid: int) -> list[int]:
@@ -58,9 +58,9 @@ def test_a_stopped_run_stops_its_nodes_at_0v_and_is_summarised(
     )
     try:
         deadline = time.monotonic() + START_TIMEOUT_S
-        while not any(tmp_path.glob("*.mcap")) and time.monotonic() < deadline:
+        while not log_started(tmp_path) and time.monotonic() < deadline:
             time.sleep(0.1)
-        assert any(tmp_path.glob("*.mcap")), "the daemon never opened its log"
+        assert log_started(tmp_path), "the daemon never began its log"
         time.sleep(1.5)  # well into the run
         nodes = children_of(launcher.pid)
         assert len(nodes) == 2
@@ -93,7 +93,7 @@ def test_a_killed_launcher_takes_its_nodes_with_it(tmp_path: Path) -> None:
         cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
     )
     deadline = time.monotonic() + START_TIMEOUT_S
-    while not any(tmp_path.glob("*.mcap")) and time.monotonic() < deadline:
+    while not log_started(tmp_path) and time.monotonic() < deadline:
         time.sleep(0.1)
     time.sleep(1.5)
     launcher.kill()

@@ -8,11 +8,15 @@ fields, checked against a recorded log's schemas by the tests (:func:`layout_pat
 
 from __future__ import annotations
 
+import contextlib
 import json
 import re
 from importlib import resources
 from pathlib import Path
 from typing import Any
+
+from ballbeam.errors import OutputExistsError
+from ballbeam.files import write_new
 
 LAYOUT_NAME = "foxglove_layout.json"
 # A plot path: /topic.field, optionally followed by a Foxglove modifier such as .@degrees.
@@ -42,8 +46,9 @@ def how_to_open(log_path: str) -> str:
     """The steps to open ``log_path`` with the shipped layout (the layout is written next to
     the log as ``ballbeam.foxglove-layout.json`` if it is not there yet)."""
     layout_file = Path(log_path).resolve().with_name("ballbeam.foxglove-layout.json")
-    if not layout_file.exists():
-        layout_file.write_text(layout_text(), encoding="utf-8")
+    # A new file, never through a link; one already there (an earlier replay's) is kept.
+    with contextlib.suppress(OutputExistsError):
+        write_new(layout_file, layout_text().encode("utf-8"))
     return "\n".join((
         "To look at this run in Foxglove (the app, or app.foxglove.dev):",
         f"  1. Open the log: File → Open local file… → {Path(log_path).resolve()}",

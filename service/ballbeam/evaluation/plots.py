@@ -9,8 +9,9 @@ from typing import IO
 
 import numpy as np
 
-from ballbeam.errors import BallbeamError
+from ballbeam.errors import BallbeamError, OutputExistsError
 from ballbeam.evaluation.summary import limit_from_log, run_series
+from ballbeam.files import write_new
 from ballbeam.logs.reader import RunLog
 
 
@@ -26,8 +27,9 @@ def plot_run(
     lateness_time_s: np.ndarray | None = None,
     file_format: str | None = None,
 ) -> None:
-    """Write the figure (to a path, or a binary stream in ``file_format``); an extra panel
-    shows loop lateness when given (replay)."""
+    """Write the figure (to a new file at a path, or a binary stream in ``file_format``); an
+    extra panel shows loop lateness when given (replay). OutputExistsError if anything is at
+    the path."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -58,7 +60,15 @@ def plot_run(
     figure.suptitle(title)
     figure.tight_layout()
     try:
-        figure.savefig(path, dpi=110, format=file_format)
+        if isinstance(path, (str, Path)):
+            # A new file only (never over one, never through a link), in the format its name
+            # says (matplotlib's default where it says none).
+            file_format = file_format or Path(path).suffix.removeprefix(".").lower() or None
+            write_new(path, lambda stream: figure.savefig(stream, dpi=110, format=file_format))
+        else:
+            figure.savefig(path, dpi=110, format=file_format)
+    except OutputExistsError:
+        raise
     except OSError as error:
         raise BallbeamError(f"cannot write plot {path}: {error}") from error
     finally:

@@ -18,7 +18,8 @@ from typing import Any
 from xml.etree import ElementTree
 
 from ballbeam.config import load_config, resolve_config_path, shipped_configs
-from ballbeam.errors import BallbeamError, ConfigError
+from ballbeam.errors import BallbeamError, ConfigError, OutputExistsError
+from ballbeam.files import write_new
 
 
 @dataclass(frozen=True)
@@ -208,6 +209,13 @@ def write_junit(results: list[ScenarioResult], path: Path) -> None:
                     case, "failure", message=f"{check.metric} = {check.value} not {check.bound}"
                 )
     try:
-        ElementTree.ElementTree(suite).write(path, encoding="utf-8", xml_declaration=True)
+        write_new(
+            path,
+            lambda stream: ElementTree.ElementTree(suite).write(
+                stream, encoding="utf-8", xml_declaration=True
+            ),
+        )
+    except OutputExistsError:
+        raise
     except OSError as error:
         raise BallbeamError(f"cannot write JUnit XML {path}: {error}") from error

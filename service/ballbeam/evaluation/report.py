@@ -19,9 +19,10 @@ from typing import Any
 
 import numpy as np
 
-from ballbeam.errors import BallbeamError
+from ballbeam.errors import BallbeamError, OutputExistsError
 from ballbeam.evaluation.plots import plot_log
 from ballbeam.evaluation.summary import run_series
+from ballbeam.files import write_new
 from ballbeam.logs.reader import RunLog
 
 HEADLINE = (
@@ -42,10 +43,13 @@ figure { margin: 1em 0; } svg { max-width: 100%; height: auto; }
 
 
 def write_report(run_log: RunLog, summary: Mapping[str, Any], path: str | Path) -> None:
-    """Write the page; BallbeamError naming ``path`` if it cannot be written."""
+    """Write the page, a new file; OutputExistsError if anything is at ``path``, BallbeamError
+    naming it if it cannot be written."""
     page = render_report(run_log, summary)
     try:
-        Path(path).write_text(page, encoding="utf-8")
+        write_new(path, page.encode("utf-8"))  # a new file only, never through a link
+    except OutputExistsError:
+        raise
     except OSError as error:
         raise BallbeamError(f"cannot write report {path}: {error.strerror or error}") from error
 

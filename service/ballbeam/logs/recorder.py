@@ -36,7 +36,8 @@ from typing import IO, Any, Protocol
 import numpy as np
 from mcap.writer import LIBRARY_IDENTIFIER
 
-from ballbeam.errors import RecorderError
+from ballbeam.errors import OutputExistsError, RecorderError
+from ballbeam.files import create_new
 from ballbeam.logs.mcap_file import McapFile, OpenChunk
 from ballbeam.logs.schema import MESSAGE_ENCODING, SCHEMA_ENCODING, StructSchema
 
@@ -147,8 +148,10 @@ class Recorder:
             ...
             rec.record(sensor, t_ns, (angle_rad, position_m))   # loop thread, never blocks
 
-    Raises RecorderError (with the path and the OS reason) if the file cannot be created or
-    its first records cannot be written.
+    ``path`` is created as a new file (OutputExistsError naming it if anything is there, a
+    link included). A stream passed with a ``name`` (its file's path) is owned: closed at the
+    end. Raises RecorderError (with the path and the OS reason) if the file cannot be created
+    or its first records cannot be written.
     """
 
     def __init__(
@@ -162,6 +165,7 @@ class Recorder:
         flush_interval_s: float = 0.03,  # a killed run loses at most about this much log
         chunk_size_bytes: int = 1 << 20,
         tap: ChunkTap | None = None,
+        name: str | os.PathLike[str] | None = None,
     ) -> None:
         if queue_size < 1:
             raise ValueError("queue_size must be at least 1")
@@ -173,12 +177,20 @@ class Recorder:
         }
         attachment_list = [(str(n), str(m), bytes(d)) for n, m, d in attachments]
 
-        self._owns_stream = isinstance(path, (str, os.PathLike))
-        self.path = os.fspath(path) if isinstance(path, (str, os.PathLike)) else "<stream>"
+        # A stream passed with its name (the file `ballbeam run` created for the daemon) is
+        # the recorder's to close, like one it opens itself.
+        self._owns_stream = isinstance(path, (str, os.PathLike)) or name is not None
+        if isinstance(path, (str, os.PathLike)):
+            self.path = os.fspath(path)
+        else:
+            self.path = os.fspath(name) if name is not None else "<stream>"
         stream: IO[bytes]
         if isinstance(path, (str, os.PathLike)):
             try:
-                stream = open(path, "wb")  # noqa: SIM115 - kept open for the recorder's lifetime
+                # A new file only: never over a recording, never through a planted link.
+                stream = create_new(path)
+            except OutputExistsError as exc:
+                raise OutputExistsError(f"log {exc}") from exc
             except OSError as exc:
                 raise _recorder_error(
                     f"cannot create log {self.path}: {_os_reason(exc)}", exc

@@ -14,6 +14,7 @@ import os
 import struct
 from dataclasses import dataclass
 from pathlib import Path
+from typing import BinaryIO
 
 import zstandard
 from mcap.exceptions import McapError
@@ -22,7 +23,7 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from ballbeam.errors import LogFormatError
-from ballbeam.files import not_a_regular_file
+from ballbeam.files import link_new, not_a_regular_file, temporary_beside
 
 # What the stream reader raises where a file stops being a readable MCAP (a cut record, a bad
 # CRC, a short magic).
@@ -51,30 +52,33 @@ def recovered_path(source: Path) -> Path:
 def recover_log(source: Path, destination: Path) -> Recovery:
     """Write ``destination`` from the intact records of ``source``. LogFormatError if
     ``source`` is not an MCAP file or holds nothing to recover; OSError if a file cannot be
-    read or written. ``destination`` is written to a temporary name and renamed when whole."""
+    read or written. ``destination`` is written to a temporary name and linked into place when
+    whole, never over anything already there."""
     problem = not_a_regular_file(source)
     if problem is not None:
         raise LogFormatError(f"{source}: not a log: {problem}")
     if destination.resolve() == source.resolve():
         raise LogFormatError(f"{source}: the recovered log must go to another file")
-    temporary = destination.with_name(f".{destination.name}.part")
+    # A new temporary file under a random name (nothing planted there is written through),
+    # linked into place only if nothing is at ``destination`` (OutputExistsError if so).
+    temporary, writing = temporary_beside(destination)
     try:
-        recovery = _copy_intact(source, destination, temporary)
-    except BaseException:
+        with writing:
+            recovery = _copy_intact(source, destination, writing)
+        link_new(temporary, destination)
+    finally:
         temporary.unlink(missing_ok=True)
-        raise
-    os.replace(temporary, destination)
     return recovery
 
 
-def _copy_intact(source: Path, destination: Path, temporary: Path) -> Recovery:
+def _copy_intact(source: Path, destination: Path, writing: BinaryIO) -> Recovery:
     counts = {"messages": 0, "attachments": 0, "metadata": 0}
     last_log_time_ns: int | None = None
     was_complete = False
     stopped_because: str | None = None
     schema_ids: dict[int, int] = {}
     channel_ids: dict[int, int] = {}
-    with open(source, "rb") as reading, open(temporary, "wb") as writing:
+    with open(source, "rb") as reading:
         writer: Writer | None = None
         try:
             for record in StreamReader(

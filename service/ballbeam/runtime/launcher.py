@@ -32,6 +32,7 @@ from mcap.writer import MCAP0_MAGIC
 
 from ballbeam.config import Config, load_config
 from ballbeam.errors import BallbeamError
+from ballbeam.files import remove_if_empty
 from ballbeam.protocol.secoc import SECRET_BYTES
 from ballbeam.runtime.bus import check_stays_on_host, free_udp_port, isolated_group
 from ballbeam.runtime.exit_codes import (
@@ -42,7 +43,7 @@ from ballbeam.runtime.exit_codes import (
 )
 from ballbeam.runtime.owner_lock import PEER_LOCK_ENV, create_owner_lock
 from ballbeam.runtime.peer_link import PEER_LINK_ENV, PEER_LINK_WRITE_ENV, peer_link_pipe
-from ballbeam.runtime.process import new_log_path, realtime_permitted, realtime_refused_message
+from ballbeam.runtime.process import new_log_file, realtime_permitted, realtime_refused_message
 
 STOP_GRACE_S = 5.0
 # The daemon's exits after which its run is recorded whole (summarised by ``ballbeam run``).
@@ -149,6 +150,8 @@ def _recover_cut_log(log_path: Path) -> str:
                 return ""  # it ends with the closing magic: the daemon finished its log
     except FileNotFoundError:
         return "; it had written no log yet"
+    if remove_if_empty(log_path):
+        return "; it had written no log yet"
     try:
         recovery = recover_log(log_path, recovered_path(log_path))
         os.replace(recovery.destination, log_path)
@@ -194,7 +197,10 @@ def launch_run(
         if not realtime_permitted(priority):
             # The children say so in their own logs too; the user hears it once, up front.
             print(f"ballbeam: {realtime_refused_message(priority)}", file=sys.stderr)
-    log_path = new_log_path(config.run.log_dir, config.plan.kind)
+    # Created here, before its name is on any command line, and handed to the daemon open:
+    # nothing planted at the name in between can be written through.
+    log_path, log_stream = new_log_file(config.run.log_dir, config.plan.kind)
+    log_fd = log_stream.fileno()
     base = [sys.executable, "-m"]
     config_args = ([config_path] if config_path else []) + [
         argument for override in child_overrides for argument in ("--set", override)
@@ -228,20 +234,24 @@ def launch_run(
             start_new_session=True,  # a scheduling group of its own (module docstring)
         )
         daemon = subprocess.Popen(
-            [*base, "ballbeam", "daemon", *config_args, "--log", str(log_path), *live_args,
-             *secret_args(daemon_secret)],
+            [*base, "ballbeam", "daemon", *config_args, "--log", str(log_path),
+             "--log-fd", str(log_fd), *live_args, *secret_args(daemon_secret)],
             stdout=subprocess.DEVNULL,
             stderr=subprocess.PIPE,
             text=True,
             pass_fds=tuple(
-                fd for fd in (link_write, lock_fd, daemon_secret) if fd is not None
+                fd for fd in (link_write, lock_fd, daemon_secret, log_fd) if fd is not None
             ),
             # Its end of the link also says when the run is over (the emulator then sends its
             # final counters, and the daemon records them).
             env={**os.environ, PEER_LINK_WRITE_ENV: str(link_write), **lock_env},
             start_new_session=True,
         )
+    except BaseException:
+        remove_if_empty(log_path)  # no daemon started to write it
+        raise
     finally:
+        log_stream.close()  # the daemon has its own descriptor
         for fd in (link_read, link_write, lock_fd, emulator_secret, daemon_secret):
             if fd is not None:
                 os.close(fd)

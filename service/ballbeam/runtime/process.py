@@ -13,12 +13,15 @@ import platform
 import resource
 import secrets
 import signal
+import stat
 import subprocess
 from importlib import metadata
 from pathlib import Path
+from typing import BinaryIO
 
 from ballbeam.config import Config, load_config, resolve_config_path
-from ballbeam.errors import RecorderError
+from ballbeam.errors import OutputExistsError, RecorderError
+from ballbeam.files import create_new, exists_message
 from ballbeam.runtime.ticker import scheduled_realtime
 
 log = logging.getLogger("ballbeam")
@@ -29,18 +32,78 @@ REALTIME_SWITCH_INTERVAL_S = 2e-4
 PACKAGES = ("ballbeam-hil", "numpy", "scipy", "python-can", "mcap", "pydantic", "cantools")
 
 
-def new_log_path(log_dir: str | Path, kind: str) -> Path:
-    """A unique, sortable file name: UTC time to the microsecond, then a random suffix
-    (absolute, so the path a run prints opens from anywhere)."""
+LOG_NAME_ATTEMPTS = 8
+
+
+def log_directory(log_dir: str | Path) -> Path:
+    """The run's log directory, absolute. One that is missing is made, but only its last
+    level (as ``mkdir`` without ``-p``): the default ``logs/`` beside where the command runs,
+    or ``runs/today`` in an existing ``runs/``. A deeper missing path is far more likely a typo
+    or a disk not mounted than a place to fill, and is refused, naming it."""
     directory = Path(log_dir).absolute()
+    if directory.is_dir():
+        return directory
     try:
-        directory.mkdir(parents=True, exist_ok=True)
+        directory.mkdir()
+    except FileNotFoundError as error:
+        raise RecorderError(
+            f"log directory {directory} does not exist, nor does {directory.parent}: create "
+            "it first (only the last level of a log directory is made)"
+        ) from error
+    except FileExistsError as error:  # a file, or a dangling link, stands there
+        raise RecorderError(
+            f"cannot create log directory {directory}: something that is not a directory "
+            "is there"
+        ) from error
     except OSError as error:
-        raise RecorderError(f"cannot create log directory {directory}: {error}") from error
-    if not os.access(directory, os.W_OK):
-        raise RecorderError(f"log directory {directory} is not writable")
-    stamp = dt.datetime.now(dt.UTC).strftime("%Y%m%dT%H%M%S.%fZ")
-    return directory / f"{stamp}_{kind}_{secrets.token_hex(3)}.mcap"
+        raise RecorderError(
+            f"cannot create log directory {directory}: {error.strerror or error}"
+        ) from error
+    return directory
+
+
+def new_log_file(log_dir: str | Path, kind: str) -> tuple[Path, BinaryIO]:
+    """A new log file, created here and open for writing: its name unique and sortable (UTC
+    time to the microsecond, then a random suffix; absolute, so the path a run prints opens
+    from anywhere). Created exclusively, so that nothing planted at the name (a link to
+    another file) is ever written through: a taken name is passed over for another."""
+    directory = log_directory(log_dir)
+    for _ in range(LOG_NAME_ATTEMPTS):
+        stamp = dt.datetime.now(dt.UTC).strftime("%Y%m%dT%H%M%S.%fZ")
+        path = directory / f"{stamp}_{kind}_{secrets.token_hex(3)}.mcap"
+        try:
+            return path, create_new(path)
+        except OutputExistsError:
+            log.warning("%s was there already (not written through); taking another name", path)
+        except OSError as error:
+            raise RecorderError(
+                f"cannot create log {path}: {error.strerror or error}"
+            ) from error
+    raise RecorderError(f"cannot create a log in {directory}: every name tried was taken")
+
+
+def log_from_arguments(args: argparse.Namespace, config: Config) -> tuple[Path, BinaryIO | None]:
+    """Where the daemon records, and the stream if it is open already: ``--log-fd N`` (a new,
+    empty file that ``ballbeam run`` created, named by ``--log``), ``--log PATH`` (None: the
+    recorder creates it, a new file only), else a new file in ``run.log_dir``."""
+    fd = getattr(args, "log_fd", None)
+    if fd is None:
+        if args.log:
+            if os.path.lexists(args.log):  # said before the plan is made; the open is exclusive
+                raise OutputExistsError(f"log {exists_message(args.log)}")
+            return Path(args.log), None
+        return new_log_file(config.run.log_dir, config.plan.kind)
+    if not args.log:
+        raise RecorderError("--log-fd needs --log naming the file it is open on")
+    try:
+        status = os.fstat(fd)
+    except OSError as error:
+        raise RecorderError(f"--log-fd {fd}: {error.strerror or error}") from error
+    if not stat.S_ISREG(status.st_mode) or status.st_size != 0:
+        raise RecorderError(
+            f"--log-fd {fd}: not an empty regular file (a log is only written to a new file)"
+        )
+    return Path(args.log), os.fdopen(fd, "wb")
 
 
 def git_revision() -> str:

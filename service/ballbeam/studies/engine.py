@@ -15,6 +15,7 @@ from typing import Any
 
 from ballbeam.config import read_config_data
 from ballbeam.errors import ConfigError
+from ballbeam.files import replace_file
 from ballbeam.studies.points import PointOutcome, PointTask, evaluate_batch, log_dir_for, warm_up
 from ballbeam.studies.spec import Point, SweepSpec, toml_value
 from ballbeam.studies.store import ResultStore, point_id
@@ -142,7 +143,7 @@ def run_sweep(
     table = results_table(spec, pairs, records)
     table_path = output / TABLE_NAME
     try:
-        table.to_parquet(table_path, index=False)
+        replace_file(table_path, lambda stream: table.to_parquet(stream, index=False))
     except OSError as error:  # the points are stored: a rerun writes the table without them
         raise ConfigError(f"cannot write the results table {table_path}: {error}") from error
     return SweepOutcome(

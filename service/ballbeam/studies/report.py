@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from ballbeam.files import replace_file
 from ballbeam.studies.spec import SEED_KEY, SweepSpec
 
 QUANTILES = (0.1, 0.5, 0.9)
@@ -67,6 +68,11 @@ def _grid_shape(count: int) -> tuple[int, int]:
     return math.ceil(count / columns), columns
 
 
+def _save(figure: Any, path: Path) -> None:
+    """Whole, in place of an earlier run's plot, never through a link (``files.replace_file``)."""
+    replace_file(path, lambda stream: figure.savefig(stream, dpi=90, format="png"))
+
+
 def plot_sweep(table: Any, spec: SweepSpec, metrics: list[str], directory: Path) -> list[Path]:
     """``metric_vs_<key>.png`` per swept key (the seed is the replication, not a key to plot
     against) and ``distributions.png``. Failed points are left out."""
@@ -109,7 +115,7 @@ def plot_sweep(table: Any, spec: SweepSpec, metrics: list[str], directory: Path)
         figure.suptitle(f"{spec.path.stem}: metrics against {key} ({len(ok)} points)")
         figure.tight_layout()
         path = directory / f"metric_vs_{key.replace('.', '_')}.png"
-        figure.savefig(path, dpi=90)
+        _save(figure, path)
         plt.close(figure)
         written.append(path)
     figure, axes = plt.subplots(rows, columns, figsize=(4.2 * columns, 3.0 * rows), squeeze=False)
@@ -128,7 +134,7 @@ def plot_sweep(table: Any, spec: SweepSpec, metrics: list[str], directory: Path)
     figure.suptitle(f"{spec.path.stem}: distributions (p10, median, p90)")
     figure.tight_layout()
     path = directory / "distributions.png"
-    figure.savefig(path, dpi=90)
+    _save(figure, path)
     plt.close(figure)
     written.append(path)
     return written

@@ -48,6 +48,7 @@ import numpy as np
 
 from ballbeam.config import load_config, read_config_data, read_toml_file, resolve_config_path
 from ballbeam.errors import BallbeamError, ConfigError
+from ballbeam.files import replace_file
 from ballbeam.studies.points import PointOutcome, PointTask, evaluate_batch, warm_up
 from ballbeam.studies.spec import SweepSpec, check_config_key, spec_from_mapping, toml_value
 from ballbeam.studies.store import point_id
@@ -440,7 +441,9 @@ def run_tune(
             for point, outcome in zip(spec.holdout.points(), held_out, strict=True)
         ]
     # Every held-out run of both configs: which scenarios make the worst case.
-    pd.DataFrame(holdout_rows).to_parquet(output / "holdout.parquet", index=False)
+    holdout_frame = pd.DataFrame(holdout_rows)
+    replace_file(output / "holdout.parquet",
+                 lambda stream: holdout_frame.to_parquet(stream, index=False))
     for label, trial_number in (("default", 0), ("tuned", best.number)):
         for set_name, result in (("tuning", scores[trial_number]), ("held-out", holdout[label])):
             table.append({"set": set_name, "config": label, "feasible": result.feasible,
@@ -448,8 +451,9 @@ def run_tune(
     worst = f"{spec.metric} worst"
     improvement = 1.0 - holdout["tuned"].summary[worst] / holdout["default"].summary[worst]
     trials_frame = study.trials_dataframe()
-    trials_frame.to_parquet(output / "trials.parquet", index=False)
-    (output / "before_after.md").write_text(markdown_table(table) + "\n", encoding="utf-8")
+    replace_file(output / "trials.parquet",
+                 lambda stream: trials_frame.to_parquet(stream, index=False))
+    replace_file(output / "before_after.md", (markdown_table(table) + "\n").encode("utf-8"))
     return TuneOutcome(default_params, best_params, best.number, trials_frame, table, tuned_path,
                        improvement)
 
@@ -487,7 +491,7 @@ def write_tuned_config(
         sections.setdefault(section, []).append(f"{name} = {toml_value(value)}")
     for section, entries in sections.items():
         lines += ["", f"[{section}]", *entries]
-    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    replace_file(path, ("\n".join(lines) + "\n").encode("utf-8"))
     load_config(path)  # what was written is a valid config
     return path
 

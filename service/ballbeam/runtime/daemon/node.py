@@ -8,7 +8,7 @@ import json
 import logging
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, BinaryIO
 
 from ballbeam.assembly import controller_design
 from ballbeam.config import Config
@@ -88,10 +88,13 @@ def run_daemon(
     *,
     live_port: int | None = None,
     secret: bytes | None = None,
+    log_stream: BinaryIO | None = None,
 ) -> str:
     """Plan, synthesise, open the recorder and the bus, run, finish the file. Returns how the
     run ended (``DaemonStats.end_reason``); PlantLostError if no plant answered at the start.
     ``secret``: the run's frame-authentication key (needed when ``bus.authenticated``).
+    ``log_stream``: the file ``log_path`` names, created and open already (else the recorder
+    creates it, a new file only).
 
     With ``live_port``, the run is also served live on ``ws://127.0.0.1:<live_port>``
     (``runtime/live.py``); LiveViewError, before anything else, if the port is taken."""
@@ -101,7 +104,7 @@ def run_daemon(
 
         live = LiveView(live_port)  # its port is checked now; it serves once channels exist
     try:
-        return _run_recorded(config, log_path, config_path, live, secret)
+        return _run_recorded(config, log_path, config_path, live, secret, log_stream)
     finally:
         if live is not None:
             live.stop()
@@ -113,6 +116,7 @@ def _run_recorded(
     config_path: str | None,
     live: LiveView | None,
     secret: bytes | None,
+    log_stream: BinaryIO | None,
 ) -> str:
     design = controller_design(config)  # before touching the bus: a bad config fails fast
     # The recorder's writer thread shares the GIL; switching sooner bounds how long it can
@@ -142,7 +146,8 @@ def _run_recorded(
         with contextlib.suppress(OSError):
             attachments.append(("config.toml", "application/toml", Path(config_path).read_bytes()))
     recorder = Recorder(
-        log_path,
+        log_stream if log_stream is not None else log_path,
+        name=log_path if log_stream is not None else None,
         metadata={
             "config": {"json": resolved, "source": config_path or "(defaults)"},
             "versions": {**package_versions(), "git_revision": git_revision()},
