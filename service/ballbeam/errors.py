@@ -29,6 +29,10 @@ class LogFormatError(BallbeamError, ValueError):
     """A file is not a readable ballbeam MCAP log."""
 
 
+class DecompressionBombError(LogFormatError):
+    """Compressed data in a log would inflate past the size it states, or past the bound."""
+
+
 class RecorderError(BallbeamError, OSError):
     """The run recorder cannot write its log."""
 
