@@ -17,7 +17,7 @@ import resource
 import struct
 import tempfile
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
@@ -178,7 +178,7 @@ CHUNKS = [(start, end) for opcode, start, end in RECORDS if opcode == OP_CHUNK]
 
 @dataclass(frozen=True)
 class Mutated:
-    data: bytes
+    data: bytes = field(repr=False)  # a failure prints what was done, not half a megabyte
     intact_until: int  # no byte before this offset differs from the golden log
     what: str
 

@@ -12,6 +12,7 @@ import contextlib
 import io
 import json
 import tracemalloc
+import zipfile
 from collections.abc import Callable
 from pathlib import Path
 
@@ -19,8 +20,9 @@ import pytest
 
 from ballbeam import cli
 from ballbeam.config import MAX_TOML_NESTING, load_config, parse_override
-from ballbeam.errors import ConfigError, DecompressionBombError
+from ballbeam.errors import ConfigError, DecompressionBombError, LogFormatError
 from ballbeam.logs.decompression import MAX_CHUNK_BYTES, decompress_chunk
+from ballbeam.logs.design_record import decode_design
 from ballbeam.logs.reader import read_log
 
 from ..conftest import PAPER, ballbeam
@@ -234,3 +236,16 @@ def test_replay_refuses_a_bomb_even_in_the_last_chunk(tmp_path: Path, bomb: str)
 
 def test_the_paper_config_still_loads() -> None:
     assert load_config(PAPER).run.duration_s > 0
+
+
+def test_a_recorded_design_whose_array_header_claims_terabytes_is_refused() -> None:
+    """An .npy header (NEP 1 format, written by hand) claiming 10**12 float64 values over no
+    data: NumPy would allocate 8 TB before reading, and fail with MemoryError."""
+    header = b"{'descr': '<f8', 'fortran_order': False, 'shape': (1000000000000,), }"
+    header += b" " * (-(10 + len(header) + 1) % 64) + b"\n"
+    npy = b"\x93NUMPY\x01\x00" + len(header).to_bytes(2, "little") + header
+    archive = io.BytesIO()
+    with zipfile.ZipFile(archive, "w") as writing:
+        writing.writestr("format_version.npy", npy)
+    with pytest.raises(LogFormatError, match="claims"):
+        decode_design(archive.getvalue(), "hostile.mcap")
