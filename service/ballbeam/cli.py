@@ -262,6 +262,12 @@ def command_recover(args: argparse.Namespace) -> int:
         ) from error
     except OSError as error:
         raise LogFormatError(f"cannot recover {source}: {error.strerror or error}") from error
+    if recovery.refused is not None:
+        # Hostile, not a cut: an error, after what came before it was kept.
+        raise LogFormatError(
+            f"{source}: {recovery.refused}; the {recovery.messages} messages before it are "
+            f"recovered in {destination}"
+        )
     report = {
         "source": str(recovery.source),
         "recovered": str(recovery.destination),

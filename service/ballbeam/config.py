@@ -743,6 +743,55 @@ def _deep_merge(base: dict[str, Any], override: Mapping[str, Any]) -> dict[str, 
 
 
 MAX_CONFIG_BYTES = 1 << 20  # far above any real config (the paper's is 4 KiB)
+# Tables and arrays inside one another: ours go 4 deep (a spec's array of tables of arrays).
+# Deeper input is refused where it is parsed, before any recursive code sees it.
+MAX_TOML_NESTING = 16
+
+
+def parse_toml(text: str, source: str) -> dict[str, Any]:
+    """``text`` parsed as TOML: a ConfigError naming ``source`` if it is not valid TOML, holds
+    a number Python will not read, or nests tables and arrays deeper than MAX_TOML_NESTING."""
+    try:
+        return _loads_bounded(text, source)
+    except tomllib.TOMLDecodeError as error:
+        raise ConfigError(f"{source}: not valid TOML: {error}") from error
+
+
+def _loads_bounded(text: str, source: str) -> dict[str, Any]:
+    """``tomllib.loads`` (its TOMLDecodeError passes through), with ConfigError for what it
+    parses but this project will not take. tomllib recurses once per level of nesting: a deep
+    enough text exhausts the interpreter's stack."""
+    try:
+        data = tomllib.loads(text)
+    except RecursionError:
+        data = None  # raised outside the handler: its traceback holds a thousand frames
+    except tomllib.TOMLDecodeError:
+        raise
+    except ValueError as error:  # an integer past Python's digit limit for int(str)
+        raise ConfigError(f"{source}: not a usable TOML value: {error}") from error
+    if data is None or _nesting_depth(data) > MAX_TOML_NESTING:
+        raise ConfigError(
+            f"{source}: tables and arrays nested more than {MAX_TOML_NESTING} deep"
+        )
+    return data
+
+
+def _nesting_depth(value: Any) -> int:
+    """How deep tables and arrays nest in ``value`` (a scalar: 0), stopping soon past the
+    limit; without recursion."""
+    deepest = 0
+    stack: list[tuple[Any, int]] = [(value, 1)]
+    while stack and deepest <= MAX_TOML_NESTING:
+        item, depth = stack.pop()
+        if isinstance(item, dict):
+            children: Iterable[Any] = item.values()
+        elif isinstance(item, list):
+            children = item
+        else:
+            continue
+        deepest = max(deepest, depth)
+        stack.extend((child, depth + 1) for child in children)
+    return deepest
 
 
 def read_toml_file(path: Path, kind: str = "config") -> dict[str, Any]:
@@ -759,15 +808,14 @@ def read_toml_file(path: Path, kind: str = "config") -> dict[str, Any]:
             raise ConfigError(
                 f"{path}: larger than {MAX_CONFIG_BYTES // 1024} KiB; not a {kind} file"
             )
-        return tomllib.loads(text.decode("utf-8"))
+        decoded = text.decode("utf-8")
     except FileNotFoundError as error:
         raise ConfigError(f"{kind} file not found: {path}") from error
     except IsADirectoryError as error:
         raise ConfigError(f"{kind} path is a directory, not a file: {path}") from error
     except (OSError, UnicodeDecodeError) as error:
         raise ConfigError(f"cannot read {kind} file {path}: {error}") from error
-    except tomllib.TOMLDecodeError as error:
-        raise ConfigError(f"{path}: not valid TOML: {error}") from error
+    return parse_toml(decoded, str(path))
 
 
 def _read_toml(path: Path, depth: int = 0) -> dict[str, Any]:
@@ -790,7 +838,7 @@ def parse_override(assignment: str) -> dict[str, Any]:
     if not separator or not key or any(not part.strip() for part in key.split(".")):
         raise ConfigError(f"override {assignment!r} is not of the form dotted.key=value")
     try:
-        value = tomllib.loads(f"value = {text.strip()}")["value"]
+        value = _loads_bounded(f"value = {text.strip()}", f"override {key}")["value"]
     except tomllib.TOMLDecodeError:
         value = text.strip()
     nested: dict[str, Any] = {}

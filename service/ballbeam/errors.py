@@ -34,6 +34,10 @@ class OutputExistsError(BallbeamError, FileExistsError):
     ever written over or through it."""
 
 
+class DecompressionBombError(LogFormatError):
+    """Compressed data in a log would inflate past the size it states, or past the bound."""
+
+
 class RecorderError(BallbeamError, OSError):
     """The run recorder cannot write its log."""
 

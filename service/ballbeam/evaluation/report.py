@@ -171,5 +171,5 @@ def _config_text(run_log: RunLog) -> str:
         return "(the log holds no config)"
     try:
         return json.dumps(json.loads(text), indent=2, sort_keys=True)
-    except ValueError:
+    except (ValueError, RecursionError):  # not JSON, or nested past the interpreter's stack
         return text

@@ -338,11 +338,13 @@ def _load(data: bytes, where: str) -> dict[str, np.ndarray]:
     try:
         with zipfile.ZipFile(io.BytesIO(data)) as archive:
             unpacked = sum(info.file_size for info in archive.infolist())
-        if unpacked > MAX_UNPACKED_BYTES:
-            raise LogFormatError(
-                f"{where}: recorded controller design unpacks to {unpacked} bytes "
-                f"(more than {MAX_UNPACKED_BYTES}); refused"
-            )
+            if unpacked > MAX_UNPACKED_BYTES:
+                raise LogFormatError(
+                    f"{where}: recorded controller design unpacks to {unpacked} bytes "
+                    f"(more than {MAX_UNPACKED_BYTES}); refused"
+                )
+            for info in archive.infolist():
+                _check_array_size(archive, info, where)
         with np.load(io.BytesIO(data), allow_pickle=False) as archive:
             arrays = {name: archive[name] for name in archive.files}
     except LogFormatError:
@@ -358,6 +360,23 @@ def _load(data: bytes, where: str) -> dict[str, np.ndarray]:
             )
     return {name: array.astype(np.float64, copy=False) if array.dtype.kind == "f" else array
             for name, array in arrays.items()}
+
+
+def _check_array_size(archive: zipfile.ZipFile, info: zipfile.ZipInfo, where: str) -> None:
+    """NumPy allocates an array as large as its header says before reading its data: a header
+    must not claim more than its member holds (a few bytes could claim terabytes)."""
+    with archive.open(info) as member:
+        version = np.lib.format.read_magic(member)
+        if version == (1, 0):
+            shape, _, dtype = np.lib.format.read_array_header_1_0(member)
+        else:
+            shape, _, dtype = np.lib.format.read_array_header_2_0(member)
+    claimed = dtype.itemsize * math.prod(shape)
+    if claimed > info.file_size:
+        raise LogFormatError(
+            f"{where}: recorded controller design: array {info.filename!r} claims {claimed} "
+            f"bytes in a member of {info.file_size}; refused"
+        )
 
 
 def _f8(value: Any) -> np.ndarray:

@@ -11,23 +11,16 @@ truncated rather than as an error.
 
 from __future__ import annotations
 
-import importlib
 import struct
 import zlib
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-import zstandard
 
-from ballbeam.errors import LogFormatError
+from ballbeam.errors import DecompressionBombError, LogFormatError
+from ballbeam.logs.decompression import decompress_chunk
 from ballbeam.logs.schema import MESSAGE_ENCODING, SCHEMA_ENCODING, StructSchema, parse_ros2msg
-
-_lz4: Any
-try:  # lz4 is optional: our writer uses zstd, other writers may not
-    _lz4 = importlib.import_module("lz4.frame")
-except ImportError:  # pragma: no cover - depends on the environment
-    _lz4 = None
 
 PROFILE = "ballbeam"
 MAGIC = b"\x89MCAP0\r\n"
@@ -71,9 +64,6 @@ _MSG_FIXED = struct.Struct("<HIQQ")
 
 _RECORD_HEAD = 9  # opcode (1) + content length (8)
 _MESSAGE_HEAD = 31  # record head + channel id (2) + sequence (4) + log time (8) + publish time (8)
-# A chunk that decompresses past this is not one of ours (they are about 1 MiB; other writers'
-# defaults are a few MiB): a hostile chunk cannot make a reader allocate more.
-_MAX_CHUNK_BYTES = 64 << 20
 
 
 class _Cursor:
@@ -158,7 +148,6 @@ class _RecordWalk:
         self.chunk_count = 0
         self.message_count = 0
         self.last_time_ns: int | None = None
-        self.decompressor = zstandard.ZstdDecompressor()
 
     # ---- top level ----------------------------------------------------------------------
 
@@ -255,7 +244,10 @@ class _RecordWalk:
                 # Index, statistics, summary offset and unknown records carry nothing we need.
             except LogFormatError as exc:
                 # Damage confined to the last record of an unfinished file (or to its last
-                # chunk, followed only by that chunk's message indexes) is truncation.
+                # chunk, followed only by that chunk's message indexes) is truncation; a
+                # decompression bomb is hostile wherever it is.
+                if isinstance(exc, DecompressionBombError):
+                    raise
                 if last or (opcode == OP_CHUNK and self.only_indexes_follow(end)):
                     return False, f"damaged last record at byte {pos}: {exc}"
                 raise
@@ -381,36 +373,10 @@ class _RecordWalk:
         n = cur.u64()
         start = cur.take(n)
         data = self.buf[start : start + n]
-        if uncompressed_size > _MAX_CHUNK_BYTES:
-            raise self.fail(where, f"chunk claims {uncompressed_size} bytes uncompressed")
         try:
-            if compression == "zstd":
-                declared = zstandard.frame_content_size(data)
-                if declared not in (-1, uncompressed_size):
-                    raise ValueError(f"frame says {declared} bytes")
-                out = self.decompressor.decompress(data, max_output_size=uncompressed_size)
-            elif compression == "lz4":
-                if _lz4 is None:
-                    raise self.fail(where, "chunk is lz4-compressed and the lz4 module is missing")
-                declared = _lz4.get_frame_info(data).get("content_size", 0)
-                if declared not in (0, uncompressed_size):
-                    raise ValueError(f"frame says {declared} bytes")
-                # Bounded like zstd: never more than the chunk's declared size (+1 to see excess).
-                out = _lz4.LZ4FrameDecompressor().decompress(
-                    data, max_length=uncompressed_size + 1
-                )
-            elif compression == "":
-                out = bytes(data)
-            else:
-                raise self.fail(where, f"unknown chunk compression {compression!r}")
-        except (zstandard.ZstdError, ValueError, RuntimeError) as exc:
-            if isinstance(exc, LogFormatError):
-                raise
-            raise self.fail(where, f"{compression} data does not decompress: {exc}") from exc
-        if len(out) != uncompressed_size:
-            raise self.fail(
-                where, f"chunk decompresses to {len(out)} bytes, not the {uncompressed_size} stated"
-            )
+            out = decompress_chunk(compression, data, uncompressed_size)
+        except LogFormatError as exc:  # bounded: never more than the chunk states
+            raise type(exc)(f"{self.path}: {where}: {exc}") from exc
         if crc and zlib.crc32(out) != crc:
             raise self.fail(where, "chunk fails its CRC")
         return _Chunk(pos, out)

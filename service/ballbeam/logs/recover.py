@@ -12,18 +12,30 @@ from __future__ import annotations
 
 import os
 import struct
-from dataclasses import dataclass
+from collections.abc import Iterator
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import BinaryIO
+from typing import IO, BinaryIO, cast
 
 import zstandard
 from mcap.exceptions import McapError
-from mcap.records import Attachment, Channel, Footer, Header, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
+from mcap.records import (
+    Attachment,
+    Channel,
+    Chunk,
+    Footer,
+    Header,
+    McapRecord,
+    Message,
+    Metadata,
+    Schema,
+)
+from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 
-from ballbeam.errors import LogFormatError
+from ballbeam.errors import DecompressionBombError, LogFormatError
 from ballbeam.files import link_new, not_a_regular_file, temporary_beside
+from ballbeam.logs.decompression import decompress_chunk
 
 # What the stream reader raises where a file stops being a readable MCAP (a cut record, a bad
 # CRC, a short magic).
@@ -43,6 +55,9 @@ class Recovery:
     attachments: int
     metadata: int
     last_log_time_ns: int | None  # the latest message kept
+    # Why reading stopped at a chunk that would inflate past its stated size (a decompression
+    # bomb: hostile, not a cut); everything before it was kept. None otherwise.
+    refused: str | None = None
 
 
 def recovered_path(source: Path) -> Path:
@@ -76,14 +91,13 @@ def _copy_intact(source: Path, destination: Path, writing: BinaryIO) -> Recovery
     last_log_time_ns: int | None = None
     was_complete = False
     stopped_because: str | None = None
+    refused: str | None = None
     schema_ids: dict[int, int] = {}
     channel_ids: dict[int, int] = {}
     with open(source, "rb") as reading:
         writer: Writer | None = None
         try:
-            for record in StreamReader(
-                reading, validate_crcs=True, record_size_limit=RECORD_SIZE_LIMIT
-            ).records:
+            for record in _records(reading):
                 if isinstance(record, Header):
                     writer = Writer(writing, compression=CompressionType.ZSTD)
                     writer.start(profile=record.profile, library=record.library)
@@ -117,6 +131,8 @@ def _copy_intact(source: Path, destination: Path, writing: BinaryIO) -> Recovery
                     counts["metadata"] += 1
                 elif isinstance(record, Footer):
                     was_complete = True
+        except DecompressionBombError as error:
+            refused = stopped_because = str(error)
         except _WHERE_THE_CUT_IS as error:
             # Where the cut is: everything before it has been copied.
             stopped_because = f"{type(error).__name__}: {error}".rstrip(": ")
@@ -131,5 +147,42 @@ def _copy_intact(source: Path, destination: Path, writing: BinaryIO) -> Recovery
         was_complete=was_complete,
         stopped_because=None if was_complete else stopped_because or "the file ends early",
         last_log_time_ns=last_log_time_ns,
+        refused=refused,
         **counts,
     )
+
+
+def _records(reading: BinaryIO) -> Iterator[McapRecord]:
+    """The file's records in order, the records inside each chunk in place of the chunk. The
+    library would inflate a chunk as far as its compressed data goes: here no further than the
+    size the chunk states (:func:`decompress_chunk`), and the library splits what that gives."""
+    source = _CappedReads(reading)
+    records = StreamReader(
+        cast("IO[bytes]", source),  # it calls read() only
+        validate_crcs=True, record_size_limit=RECORD_SIZE_LIMIT, emit_chunks=True
+    ).records
+    for record in records:
+        if isinstance(record, Chunk):
+            try:
+                data = decompress_chunk(record.compression, record.data, record.uncompressed_size)
+            except LogFormatError as error:
+                raise type(error)(f"the chunk ending at byte {source.tell()}: {error}") from error
+            yield from breakup_chunk(replace(record, compression="", data=data), validate_crc=True)
+        else:
+            yield record
+
+
+class _CappedReads:
+    """The source file with each read capped at what is left of it: a length field inside a
+    record may claim terabytes, and a buffered read allocates what it is asked for first."""
+
+    def __init__(self, file: BinaryIO) -> None:
+        self._file = file
+        self._size = os.fstat(file.fileno()).st_size
+
+    def read(self, size: int = -1) -> bytes:
+        left = max(0, self._size - self._file.tell())
+        return self._file.read(left if size < 0 else min(size, left))
+
+    def tell(self) -> int:
+        return self._file.tell()
