@@ -54,6 +54,18 @@ def check_stays_on_host(bus: BusSection) -> None:
         )
 
 
+def check_reaches_other_processes(bus: BusSection) -> None:
+    """Raise BusError for a bus that cannot join two processes: python-can's ``virtual`` bus
+    lives inside one interpreter (tests run both nodes in one process on it); the daemon and
+    the emulator of ``ballbeam run``, ``daemon`` and ``emulator`` are processes of their own."""
+    if bus.interface == "virtual":
+        raise BusError(
+            "bus.interface = 'virtual' is python-can's in-process bus: the daemon and the "
+            "emulator are separate processes and would never hear each other; use "
+            "udp_multicast (the default) or socketcan"
+        )
+
+
 def isolated_group(group: str) -> str:
     """The same group prefix with random low 64 bits: a private bus for one run, as long as
     its sockets hear only their own group (open_bus sees to that; python-can alone binds the

@@ -33,7 +33,12 @@ from mcap.writer import MCAP0_MAGIC
 from ballbeam.config import Config, load_config
 from ballbeam.errors import BallbeamError
 from ballbeam.protocol.secoc import SECRET_BYTES
-from ballbeam.runtime.bus import check_stays_on_host, free_udp_port, isolated_group
+from ballbeam.runtime.bus import (
+    check_reaches_other_processes,
+    check_stays_on_host,
+    free_udp_port,
+    isolated_group,
+)
 from ballbeam.runtime.exit_codes import (
     EXIT_FAILED,
     EXIT_OK,
@@ -170,6 +175,7 @@ def launch_run(
     With ``live_port`` the daemon serves the run live on that loopback port (``--live``)."""
     config = load_config(config_path, overrides)
     check_stays_on_host(config.bus)
+    check_reaches_other_processes(config.bus)
     live_args: list[str] = []
     if live_port is not None:
         from ballbeam.runtime.live import check_port_free, live_url
