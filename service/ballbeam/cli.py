@@ -148,7 +148,7 @@ def command_simulate(args: argparse.Namespace) -> int:
 def command_daemon(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from ballbeam.runtime.bus import check_reaches_other_processes
+    from ballbeam.runtime.bus import check_before_start
     from ballbeam.runtime.daemon.loop import PlantLostError
     from ballbeam.runtime.daemon.node import run_daemon
     from ballbeam.runtime.exit_codes import EXIT_PLANT_LOST, exit_code
@@ -156,7 +156,7 @@ def command_daemon(args: argparse.Namespace) -> int:
 
     configure_logging()
     config = config_from_arguments(args)
-    check_reaches_other_processes(config.bus)  # before the log is made
+    check_before_start(config.bus)  # before the log is made
     live_port = _live_port(args)
     log_path = Path(args.log) if args.log else new_log_path(config.run.log_dir, config.plan.kind)
     secret = secret_from_arguments(args)
@@ -174,13 +174,13 @@ def command_daemon(args: argparse.Namespace) -> int:
 
 
 def command_emulator(args: argparse.Namespace) -> int:
-    from ballbeam.runtime.bus import check_reaches_other_processes
+    from ballbeam.runtime.bus import check_before_start
     from ballbeam.runtime.process import secret_from_arguments
     from ballbeam_emulator.main import run_emulator
 
     configure_logging()
     config = config_from_arguments(args)
-    check_reaches_other_processes(config.bus)
+    check_before_start(config.bus)
     run_emulator(config, secret_from_arguments(args))
     return 0
 

@@ -34,8 +34,7 @@ from ballbeam.config import Config, load_config
 from ballbeam.errors import BallbeamError
 from ballbeam.protocol.secoc import SECRET_BYTES
 from ballbeam.runtime.bus import (
-    check_reaches_other_processes,
-    check_stays_on_host,
+    check_before_start,
     free_udp_port,
     isolated_group,
 )
@@ -174,8 +173,7 @@ def launch_run(
     """Run one scenario; ``on_started`` gets both processes (benchmarks watch their memory).
     With ``live_port`` the daemon serves the run live on that loopback port (``--live``)."""
     config = load_config(config_path, overrides)
-    check_stays_on_host(config.bus)
-    check_reaches_other_processes(config.bus)
+    check_before_start(config.bus)  # nothing started, no log made
     live_args: list[str] = []
     if live_port is not None:
         from ballbeam.runtime.live import check_port_free, live_url
