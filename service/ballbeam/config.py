@@ -30,18 +30,18 @@ from ballbeam.files import not_a_regular_file
 MAX_EXTENDS_DEPTH = 16
 # What one run can hold; every size a config asks for is held to these at validation, before
 # anything is planned, synthesised or started (Config._consistent).
-# The fastest controller period (controller.rate_hz <= 20 kHz): the finest useful plan grid (the
-# controller applies one voltage a period; a 1 µs grid ran the LP out of memory).
+# The fastest controller period: a finer plan grid gives the controller nothing (one voltage a
+# period) and grows the planner's LP without bound.
 MIN_PLAN_STEP_S = 5e-5
-# The tracker synthesis peaks at ~770 bytes a grid step (horizon_s × rate_hz steps; measured:
-# 92 MB and 2 s for 120,000): 2^19 steps is ~400 MB and ~10 s, and 60 s at 1 kHz fits.
+# The tracker synthesis holds ~770 bytes a grid step (horizon_s × rate_hz) at its peak: 2^19
+# steps is ~400 MB, and still 60 s of horizon at 1 kHz.
 MAX_SYNTHESIS_STEPS = 1 << 19
-# `run` and `replay` read the whole log into memory, ~340 bytes of arrays a sensor sample
-# (~420 bytes of file): 2^22 samples (70 min at 1 kHz) is ~1.4 GB read, ~1.8 GB on disk.
+# `run` and `replay` read the whole log into memory, ~340 bytes of arrays a sensor sample: 2^22
+# samples (70 min at 1 kHz) is ~1.4 GB.
 MAX_RUN_SAMPLES = 1 << 22
 # Physics steps a second (sensor_rate_hz × physics_substeps): the fastest sensor rate at its
 # fewest substeps. Finer steps change the linear plant not at all (exact hold) and cost the
-# nonlinear ball one RK4 step each (~30-130 µs of CPU here).
+# nonlinear ball one RK4 step each.
 MAX_PHYSICS_STEPS_PER_S = 200_000
 MAX_NOISE_LEVELS = 16  # one observer design (a DARE) per level and filter: a table, not a sweep
 # Interface-local IPv6 multicast (scope 1): the kernel loops it back and never transmits it.
