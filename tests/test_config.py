@@ -266,3 +266,121 @@ def test_schedules_and_taps_are_bounded_in_count() -> None:
         load_config(None, ["run.duration_s=10", f"plant.disturbances=[{taps}]"])
     ok = ", ".join(f"[{(k + 1) * 1e-3:.3f}, 0.01]" for k in range(1_000))
     assert len(load_config(None, [f"plant.disturbances=[{ok}]"]).plant.disturbances) == 1000
+
+
+# Every size a config can ask for, each just past what a run can hold (config.py's MAX_*):
+# (overrides, the key the refusal names).
+_TOO_LARGE = [
+    (["tracker.horizon_s=3600"], "tracker.horizon_s"),
+    (  # 30 s is a fine horizon at 1 kHz, but 600,000 synthesis steps at 20 kHz
+        ["controller.rate_hz=20000", "plant.sensor_rate_hz=20000", "tracker.horizon_s=30"],
+        "tracker.horizon_s",
+    ),
+    (["plan.step_s=1e-6"], "plan.step_s"),
+    (["run.duration_s=86400"], "run.duration_s"),
+    (["plant.sensor_rate_hz=20000", "run.duration_s=600"], "run.duration_s"),
+    (["plant.physics_substeps=1000"], "plant.physics_substeps"),
+    (["plant.sensor_rate_hz=20000", "plant.physics_substeps=20"], "plant.physics_substeps"),
+    ([f"observer.noise_levels={[float(level) for level in range(1, 18)]}"],
+     "observer.noise_levels"),
+    (["controller.sensor_timeout_periods=10001"], "controller.sensor_timeout_periods"),
+    (["controller.sensor_timeout_alive_periods=10001"],
+     "controller.sensor_timeout_alive_periods"),
+    (["controller.lookahead_periods=21"], "controller.lookahead_periods"),
+    (["controller.lateness_probe_s=11"], "controller.lateness_probe_s"),
+    (["controller.guard_lateness_hold_s=61"], "controller.guard_lateness_hold_s"),
+    (["controller.start_timeout_s=3601"], "controller.start_timeout_s"),
+    (["controller.plant_lost_s=3601"], "controller.plant_lost_s"),
+    (["controller.lockstep_timeout_s=3601"], "controller.lockstep_timeout_s"),
+    (["tracker.rest_firm_s=61"], "tracker.rest_firm_s"),
+    (["tracker.rest_blend_s=11"], "tracker.rest_blend_s"),
+    (["tracker.rest_catch_s=11"], "tracker.rest_catch_s"),
+    (["observer.noise_time_constant_s=61"], "observer.noise_time_constant_s"),
+    (["plant.watchdog_ms=10001"], "plant.watchdog_ms"),
+    (["plant.lockstep_resend_ms=10001"], "plant.lockstep_resend_ms"),
+    (["run.lockstep_poll_us=100001"], "run.lockstep_poll_us"),
+]
+
+
+@pytest.mark.parametrize(("overrides", "key"), _TOO_LARGE)
+def test_every_size_is_bounded_by_what_a_run_can_hold(
+    overrides: list[str], key: str, monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """Refused while the config is validated, naming the key: nothing is planned or
+    synthesised (before: a 3600 s horizon took 2.6 GB and 54 s to synthesise)."""
+    import ballbeam.assembly
+    from ballbeam import cli
+
+    with pytest.raises(ConfigError) as caught:
+        load_config(None, overrides)
+    assert key in str(caught.value)
+
+    def no_solve(*_args: object, **_kwargs: object) -> None:
+        raise AssertionError("a solve started before the config was refused")
+
+    for name in ("make_plan", "controller_design", "run_offline"):
+        monkeypatch.setattr(ballbeam.assembly, name, no_solve)
+    argv = ["simulate"] + [part for override in overrides for part in ("--set", override)]
+    assert cli.main(argv) == 2
+    error = capsys.readouterr().err
+    assert error.count("\n") == 1 and key in error
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        ["tracker.horizon_s=60"],  # 60,000 steps at 1 kHz
+        ["controller.rate_hz=20000", "plant.sensor_rate_hz=20000", "tracker.horizon_s=26"],
+        ["plan.step_s=5e-5"],
+        ["run.duration_s=4000"],  # 4,000,000 samples
+        ["plant.physics_substeps=200"],
+        ["plant.sensor_rate_hz=20000", "plant.physics_substeps=10"],
+        ["plant.sensor_rate_hz=2000", "plant.physics_substeps=20"],
+        [f"observer.noise_levels={[float(level) for level in range(1, 17)]}"],
+        ["run.duration_s=0.001"],  # one control cycle
+    ],
+)
+def test_sizes_at_their_bounds_are_accepted(overrides: list[str]) -> None:
+    load_config(None, overrides)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "fragment"),
+    [
+        (["run.duration_s=1e-9"], "run.duration_s = 1e-09 is shorter than one control cycle"),
+        (["run.duration_s=0.0004"], "shorter than one control cycle"),
+        (["plant.physics_substeps=30"], "whole number of nanoseconds"),
+        (["plant.sensor_rate_hz=3000", "controller.rate_hz=1000"],
+         "whole number of nanoseconds"),
+    ],
+)
+def test_set_ups_that_cannot_run_are_refused(overrides: list[str], fragment: str) -> None:
+    """A run with no control cycle ended after seconds of start-up with an empty log; a
+    physics step that is no whole number of nanoseconds drifts from the daemon's period."""
+    with pytest.raises(ConfigError) as caught:
+        load_config(None, overrides)
+    assert fragment in str(caught.value)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "refused"),
+    [
+        (["bus.options={fd=false}"], True),  # udp_multicast authenticates by default
+        (["bus.options={fd=false}", "bus.authenticate=true"], True),
+        (["bus.interface='socketcan'", "bus.authenticate=true"], True),  # classic by default
+        (["bus.options={fd=false}", "bus.authenticate=false"], False),
+        (["bus.interface='socketcan'", "bus.authenticate=true", "bus.options={fd=true}"], False),
+        (["bus.interface='socketcan'"], False),  # classic 8-byte E2E frames
+        (["bus.interface='virtual'"], False),  # carries any frame (in-process tests)
+    ],
+)
+def test_authenticated_frames_need_a_can_fd_bus(overrides: list[str], refused: bool) -> None:
+    """Authenticated frames are 24 bytes, 64 with the look-ahead (protocol/secoc.py): a
+    classic CAN bus cannot carry them (before: ~13 s, then "nothing to analyse")."""
+    if not refused:
+        load_config(None, overrides)
+        return
+    with pytest.raises(ConfigError) as caught:
+        load_config(None, overrides)
+    assert "bus.options.fd" in str(caught.value) and "CAN FD" in str(caught.value)

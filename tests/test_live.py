@@ -61,14 +61,17 @@ class Session:
     statuses: list[dict[str, Any]] = field(default_factory=list)
 
 
-async def watch(port: int, process: subprocess.Popen[str], give_up_s: float) -> Session:
+async def watch(
+    port: int, process: subprocess.Popen[str], give_up_s: float,
+    subprotocols: list[str] = SUBPROTOCOLS,
+) -> Session:
     """Connect as soon as the server is up, subscribe to WATCHED, read until it goes away."""
     session = Session()
     deadline = time.monotonic() + give_up_s
     while True:
         try:
             connection = await websockets.connect(
-                f"ws://127.0.0.1:{port}", subprotocols=SUBPROTOCOLS, max_size=None
+                f"ws://127.0.0.1:{port}", subprotocols=subprotocols, max_size=None
             )
             break
         except OSError:
@@ -128,8 +131,17 @@ def fields_of(value: Any) -> dict[str, Any]:
 
 
 @pytest.mark.bus
+@pytest.mark.parametrize(
+    "offered",
+    [
+        SUBPROTOCOLS,
+        # Only the older name: @foxglove/ws-protocol's FoxgloveClient, Lichtblick, older
+        # Foxglove Studio (the SDK's own server answers them HTTP 400).
+        ["foxglove.websocket.v1"],
+    ],
+)
 def test_a_websocket_client_sees_the_runs_messages_as_the_mcap_records_them(
-    tmp_path: Path,
+    tmp_path: Path, offered: list[str]
 ) -> None:
     port = free_port()
     process = subprocess.Popen(
@@ -143,7 +155,7 @@ def test_a_websocket_client_sees_the_runs_messages_as_the_mcap_records_them(
         text=True,
     )
     try:
-        session = asyncio.run(watch(port, process, give_up_s=120.0))
+        session = asyncio.run(watch(port, process, give_up_s=120.0, subprotocols=offered))
         stdout, stderr = process.communicate(timeout=300)
     finally:
         if process.poll() is None:
@@ -156,7 +168,7 @@ def test_a_websocket_client_sees_the_runs_messages_as_the_mcap_records_them(
     channels, recorded = read_mcap(Path(summary["log_path"]))
 
     # Same topics, schema names and encodings, message encodings and schema text as the file.
-    assert session.subprotocol in SUBPROTOCOLS
+    assert session.subprotocol in offered
     # Level 2 is an error, e.g. "Unknown channel ID" for a subscription the server refused.
     assert not [status for status in session.statuses if status.get("level") == 2], (
         session.statuses
@@ -366,3 +378,35 @@ def test_the_live_server_ends_with_its_daemon() -> None:
     )
     assert daemon.returncode == -signal.SIGKILL, daemon.stderr
     assert _ended(int(daemon.stdout.strip()), 10.0)
+
+
+def test_the_relay_asks_the_sdk_for_its_name_only_for_an_old_only_client() -> None:
+    from ballbeam.runtime.live_relay import translated_answer, translated_request
+
+    def request(*protocol_lines: str) -> bytes:
+        lines = ["GET / HTTP/1.1", "Host: 127.0.0.1:8765", "Upgrade: websocket",
+                 *protocol_lines, "Sec-WebSocket-Version: 13"]
+        return ("\r\n".join(lines) + "\r\n\r\n").encode()
+
+    old_only = translated_request(request("sec-websocket-protocol: foxglove.websocket.v1"))
+    assert old_only == request("Sec-WebSocket-Version: 13").replace(
+        b"Sec-WebSocket-Version: 13\r\nSec-WebSocket-Version: 13",
+        b"Sec-WebSocket-Version: 13\r\nSec-WebSocket-Protocol: foxglove.sdk.v1",
+    )
+    # Offers the SDK can answer itself pass as they are (the SDK picks its own name).
+    for lines in (
+        ["Sec-WebSocket-Protocol: foxglove.websocket.v1, foxglove.sdk.v1"],
+        ["Sec-WebSocket-Protocol: foxglove.websocket.v1", "Sec-WebSocket-Protocol: "
+         "foxglove.sdk.v1.1"],
+        ["Sec-WebSocket-Protocol: something.else"],
+        [],
+    ):
+        assert translated_request(request(*lines)) is None, lines
+    upgraded = (b"HTTP/1.1 101 Switching Protocols\r\nConnection: Upgrade\r\n"
+                b"sec-websocket-protocol: foxglove.sdk.v1\r\nUpgrade: websocket\r\n\r\n")
+    assert translated_answer(upgraded) == (
+        b"HTTP/1.1 101 Switching Protocols\r\nConnection: Upgrade\r\nUpgrade: websocket\r\n"
+        b"Sec-WebSocket-Protocol: foxglove.websocket.v1\r\n\r\n"
+    )
+    refused = b"HTTP/1.1 400 Bad Request\r\ncontent-length: 0\r\n\r\n"
+    assert translated_answer(refused) == refused

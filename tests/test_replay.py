@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from ballbeam.errors import LogFormatError
 from ballbeam.evaluation import replay
 from ballbeam.evaluation.summary import summarise
 from ballbeam.logs import design_record
@@ -154,3 +155,40 @@ def test_a_log_whose_config_todays_code_refuses_still_verifies_on_its_design() -
     assert result.ok and result.cycles_checked == 1000
     assert isinstance(result.resynthesis_difference, str)
     assert "cannot re-synthesise" in result.resynthesis_difference
+
+
+def with_config_json(run_log: RunLog, text: str) -> RunLog:
+    metadata = {**run_log.metadata, "config": {**run_log.metadata["config"], "json": text}}
+    return dataclasses.replace(run_log, metadata=metadata)
+
+
+@pytest.mark.parametrize("value", ["NaN", "Infinity", "-Infinity", "1e999"])
+def test_a_recorded_config_no_run_could_have_written_cannot_be_verified(
+    value: str, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A config with a NaN in it was written by no run (every config refuses NaN): the log is
+    damaged or altered, and --verify says so and exits non-zero (before: 0, verified on the
+    recorded design, as if the log were whole)."""
+    from ballbeam import cli
+
+    run_log = read_log(GOLDEN)
+    text = run_log.metadata["config"]["json"].replace('"r": 0.01', f'"r": {value}', 1)
+    assert text != run_log.metadata["config"]["json"]
+    damaged = with_config_json(run_log, text)
+    with pytest.raises(LogFormatError, match="recorded config is damaged"):
+        replay.verify(damaged)
+    monkeypatch.setattr(cli, "_read_log_or_fail", lambda _path: damaged)
+    assert cli.main(["replay", str(GOLDEN)]) == 0  # the analysis alone still stands
+    capsys.readouterr()
+    assert cli.main(["replay", str(GOLDEN), "--verify"]) == 2
+    error = capsys.readouterr().err
+    assert error.count("\n") == 1 and "cannot verify" in error
+
+
+def test_a_log_without_a_control_cycle_cannot_be_verified() -> None:
+    run_log = read_log(GOLDEN)
+    topics = {name: dataclasses.replace(topic, log_time_ns=topic.log_time_ns[:0],
+                                        values=topic.values[:0])
+              for name, topic in run_log.topics.items()}
+    with pytest.raises(LogFormatError, match="nothing to verify"):
+        replay.verify(dataclasses.replace(run_log, topics=topics))

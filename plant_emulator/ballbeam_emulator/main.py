@@ -15,7 +15,7 @@ from ballbeam.config import Config
 from ballbeam.errors import BallbeamError, BusError
 from ballbeam.protocol.frames import FrameContract
 from ballbeam.protocol.secoc import FrameAuthenticator
-from ballbeam.runtime.bus import open_bus
+from ballbeam.runtime.bus import check_before_start, open_bus
 from ballbeam.runtime.owner_lock import EMULATOR_SLOT, OwnerLock
 from ballbeam.runtime.peer_link import PeerLink
 from ballbeam.runtime.process import (
@@ -85,6 +85,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         resolve_config_argument(args)
         config = config_from_arguments(args)
+        check_before_start(config.bus)
         run_emulator(config, secret_from_arguments(args))
     except BallbeamError as error:
         print(f"ballbeam-emulator: error: {error}", file=sys.stderr)

@@ -150,6 +150,7 @@ def command_simulate(args: argparse.Namespace) -> int:
 
 def command_daemon(args: argparse.Namespace) -> int:
     from ballbeam.files import remove_if_empty
+    from ballbeam.runtime.bus import check_before_start
     from ballbeam.runtime.daemon.loop import PlantLostError
     from ballbeam.runtime.daemon.node import run_daemon
     from ballbeam.runtime.exit_codes import EXIT_PLANT_LOST, exit_code
@@ -157,6 +158,7 @@ def command_daemon(args: argparse.Namespace) -> int:
 
     configure_logging()
     config = config_from_arguments(args)
+    check_before_start(config.bus)  # before the log is made
     live_port = _live_port(args)
     secret = secret_from_arguments(args)
     log_path, log_stream = log_from_arguments(args, config)
@@ -179,11 +181,13 @@ def command_daemon(args: argparse.Namespace) -> int:
 
 
 def command_emulator(args: argparse.Namespace) -> int:
+    from ballbeam.runtime.bus import check_before_start
     from ballbeam.runtime.process import secret_from_arguments
     from ballbeam_emulator.main import run_emulator
 
     configure_logging()
     config = config_from_arguments(args)
+    check_before_start(config.bus)
     run_emulator(config, secret_from_arguments(args))
     return 0
 

@@ -28,6 +28,22 @@ from ballbeam.errors import ConfigError
 from ballbeam.files import not_a_regular_file
 
 MAX_EXTENDS_DEPTH = 16
+# What one run can hold; every size a config asks for is held to these at validation, before
+# anything is planned, synthesised or started (Config._consistent).
+# The fastest controller period: a finer plan grid gives the controller nothing (one voltage a
+# period) and grows the planner's LP without bound.
+MIN_PLAN_STEP_S = 5e-5
+# The tracker synthesis holds ~770 bytes a grid step (horizon_s × rate_hz) at its peak: 2^19
+# steps is ~400 MB, and still 60 s of horizon at 1 kHz.
+MAX_SYNTHESIS_STEPS = 1 << 19
+# `run` and `replay` read the whole log into memory, ~340 bytes of arrays a sensor sample: 2^22
+# samples (70 min at 1 kHz) is ~1.4 GB.
+MAX_RUN_SAMPLES = 1 << 22
+# Physics steps a second (sensor_rate_hz × physics_substeps): the fastest sensor rate at its
+# fewest substeps. Finer steps change the linear plant not at all (exact hold) and cost the
+# nonlinear ball one RK4 step each.
+MAX_PHYSICS_STEPS_PER_S = 200_000
+MAX_NOISE_LEVELS = 16  # one observer design (a DARE) per level and filter: a table, not a sweep
 # Interface-local IPv6 multicast (scope 1): the kernel loops it back and never transmits it.
 DEFAULT_BUS_GROUP = "ff11:7079:7468:6f6e:6465:6d6f:6d63:6173"
 # The paper's constants: ModelSection's defaults (they are written only in core/model.py).
@@ -109,7 +125,10 @@ class PlanSection(_Section):
         0.5, ge=0, le=20, description="time_optimal: the path stays this far inside ±θ limit"
     )
     step_s: float | None = Field(
-        None, gt=0, le=0.05, description="time_optimal: control grid; default the controller period"
+        None,
+        ge=MIN_PLAN_STEP_S,
+        le=0.05,
+        description="time_optimal: control grid; default the controller period",
     )
 
 
@@ -118,7 +137,9 @@ class TrackerSection(_Section):
         (10.0, 0.0, 0.0, 10000.0), description="diagonal of Q for (θ, θ̇, ẋ, x)"
     )
     r: float = Field(0.01, gt=0, description="input weight R")
-    horizon_s: float = Field(8.0, gt=0, le=3600)
+    # The longest plan (the time-optimal planner's 20 s) and well past it: beyond the plan the
+    # reference is rest at the origin. Steps (× controller.rate_hz): Config._consistent.
+    horizon_s: float = Field(8.0, gt=0, le=60)
     terminal: Literal["stationary", "zero"] = "stationary"
     input_reference: Literal["feedforward", "zero"] = Field(
         "feedforward",
@@ -236,6 +257,7 @@ class ObserverSection(_Section):
     )
     noise_levels: tuple[float, ...] = Field(
         (1.0, 2.0, 3.0, 5.0, 8.0),
+        max_length=MAX_NOISE_LEVELS,
         description="noise levels (× the assumed) at which filters are designed and "
         "interpolated",
     )
@@ -644,7 +666,41 @@ class BusSection(_Section):
                     f"bus.options: {', '.join(unknown)} not an option of python-can's "
                     f"{self.interface!r} interface"
                 )
+        if self.authenticated and not _bus_carries_fd(self.interface, self.options):
+            # protocol/secoc.py: an authenticated frame is 24 bytes, a command with its
+            # look-ahead 64; a classic CAN frame holds 8.
+            raise ValueError(
+                f"bus.options.fd: python-can's {self.interface!r} bus "
+                + ("is set to classic CAN (fd = false)" if "fd" in self.options
+                   else "sends classic CAN unless fd = true")
+                + ", but authenticated frames (bus.authenticate"
+                + (")" if self.authenticate else f", on by default for {self.interface})")
+                + " need CAN FD's 64-byte payload: set bus.options.fd = true, or "
+                "bus.authenticate = false"
+            )
         return self
+
+
+def _bus_carries_fd(interface: str, options: Mapping[str, object]) -> bool:
+    """Whether python-can's ``interface`` bus, with ``options``, carries CAN FD frames: its
+    ``fd`` keyword as given, else that keyword's default. True where the bus class has no such
+    keyword (``virtual`` carries any frame) or cannot be loaded here (opening it says why)."""
+    import importlib
+    import inspect
+
+    from can.interfaces import BACKENDS
+
+    if "fd" in options:
+        return bool(options["fd"])
+    if interface not in BACKENDS:
+        return True
+    module, class_name = BACKENDS[interface]
+    try:
+        bus_class = getattr(importlib.import_module(module), class_name)
+    except ImportError:
+        return True
+    fd = inspect.signature(bus_class.__init__).parameters.get("fd")
+    return fd is None or fd.default is inspect.Parameter.empty or bool(fd.default)
 
 
 def _bus_option_names(interface: str) -> set[str]:
@@ -697,6 +753,7 @@ class Config(_Section):
                 f"controller.rate_hz = {self.controller.rate_hz} must divide "
                 f"plant.sensor_rate_hz = {self.plant.sensor_rate_hz}"
             )
+        self._sizes_fit_a_run()
         half_beam_m = self.model.beam_length_m / 2
         if abs(self.initial.ball_position_m) > half_beam_m:
             raise ValueError(
@@ -730,6 +787,45 @@ class Config(_Section):
                     f"expect.{metric} must be a table with 'min' and/or 'max', got {bound}"
                 )
         return self
+
+    def _sizes_fit_a_run(self) -> None:
+        """Products of sizes a run must hold (the bounds' reasons: MAX_* at the top)."""
+        rate_hz = self.controller.rate_hz
+        steps = self.tracker.horizon_s * rate_hz
+        if steps > MAX_SYNTHESIS_STEPS:
+            raise ValueError(
+                f"tracker.horizon_s = {self.tracker.horizon_s} at controller.rate_hz = {rate_hz} "
+                f"is {steps:.0f} synthesis steps, more than {MAX_SYNTHESIS_STEPS} (at most "
+                f"{MAX_SYNTHESIS_STEPS / rate_hz:g} s at this rate)"
+            )
+        duration_s = self.run.duration_s
+        if round(duration_s * rate_hz) < 1:  # the daemon's own count of cycles
+            raise ValueError(
+                f"run.duration_s = {duration_s} is shorter than one control cycle "
+                f"(controller.rate_hz = {rate_hz}: {1 / rate_hz:g} s); nothing would run"
+            )
+        sensor_rate_hz = self.plant.sensor_rate_hz
+        samples = duration_s * sensor_rate_hz
+        if samples > MAX_RUN_SAMPLES:
+            raise ValueError(
+                f"run.duration_s = {duration_s} at plant.sensor_rate_hz = {sensor_rate_hz} is "
+                f"{samples:.0f} samples, more than a run's log can hold ({MAX_RUN_SAMPLES}: at "
+                f"most {MAX_RUN_SAMPLES / sensor_rate_hz:g} s at this rate)"
+            )
+        substeps = self.plant.physics_substeps
+        if sensor_rate_hz * substeps > MAX_PHYSICS_STEPS_PER_S:
+            raise ValueError(
+                f"plant.physics_substeps = {substeps} at plant.sensor_rate_hz = "
+                f"{sensor_rate_hz} is {sensor_rate_hz * substeps} physics steps a second, more "
+                f"than {MAX_PHYSICS_STEPS_PER_S}"
+            )
+        # The emulator keeps time in whole nanoseconds: a sensor period or physics step that is
+        # not one drifts from the daemon's period and from the physics' own step.
+        if 1_000_000_000 % (sensor_rate_hz * substeps):
+            raise ValueError(
+                f"plant.sensor_rate_hz = {sensor_rate_hz} with plant.physics_substeps = "
+                f"{substeps} does not give a physics step of a whole number of nanoseconds"
+            )
 
 
 def _deep_merge(base: dict[str, Any], override: Mapping[str, Any]) -> dict[str, Any]:

@@ -123,6 +123,36 @@ def test_bad_invocations_exit_2_with_one_error_line(tmp_path: Path) -> None:
             assert lines == errors and errors[0].startswith("ballbeam: error:"), (where, lines)
 
 
+def test_set_ups_that_cannot_run_are_refused_before_anything_starts(tmp_path: Path) -> None:
+    """One line naming what is wrong, exit 2, and no log left behind. Before: each started
+    both processes and ended seconds later in "no /command, ... messages; nothing to
+    analyse" (or several lines from both processes) with a log in run.log_dir."""
+    logs = tmp_path / "logs"
+    run = ["run", "--set", PLAN, "--set", f"run.log_dir='{logs}'"]
+    virtual = ["--set", "bus.interface='virtual'"]
+    cases = [
+        ([*run, *virtual], "in-process bus"),
+        (["daemon", "--set", PLAN, "--set", f"run.log_dir='{logs}'", *virtual],
+         "in-process bus"),
+        (["emulator", "--set", PLAN, *virtual], "in-process bus"),
+        ([*run, "--set", "bus.options={fd=false}"], "CAN FD"),
+        ([*run, "--set", "run.duration_s=1e-9"], "shorter than one control cycle"),
+        # No SocketCAN in this kernel, or (elsewhere) no such interface: before, both
+        # processes started, each failed to open it, and the log stayed behind.
+        ([*run, "--set", "bus.interface='socketcan'", "--set", "bus.channel='vcan_absent'"],
+         "socketcan:vcan_absent"),
+    ]
+    with ThreadPoolExecutor(max_workers=3) as pool:
+        results = list(pool.map(lambda case: ballbeam(*case[0], timeout_s=120), cases))
+    for (argv, needle), result in zip(cases, results, strict=True):
+        where = f"ballbeam {' '.join(argv)}"
+        assert result.returncode == 2, (where, result.returncode, result.stderr)
+        lines = [line for line in result.stderr.splitlines() if line.strip()]
+        assert len(lines) == 1 and lines[0].startswith("ballbeam: error:"), (where, lines)
+        assert needle in lines[0], (where, lines)
+    assert not logs.exists() or not any(logs.iterdir()), sorted(logs.iterdir())
+
+
 def _leaf_keys() -> list[str]:
     keys = []
     for section, field in Config.model_fields.items():

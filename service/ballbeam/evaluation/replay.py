@@ -12,7 +12,9 @@ A log without a recorded design (older format) is verified against the re-synthe
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -61,16 +63,14 @@ def verify(run_log: RunLog) -> VerifyResult:
     config_error = "no recorded config"
     text = run_log.metadata.get("config", {}).get("json")
     if text is not None:
+        data = _recorded_config_data(run_log.path, text)
+        controller = data.get("controller")
+        if isinstance(controller, dict) and "lookahead_periods" not in controller:
+            # Recorded before commands carried a look-ahead: the plant held the last one.
+            data = {**data, "controller": {**controller, "lookahead_periods": 0}}
         try:
-            data = json.loads(text)
-            if not isinstance(data, dict):
-                raise ValueError("not a JSON object")
-            controller = data.get("controller")
-            if isinstance(controller, dict) and "lookahead_periods" not in controller:
-                # Recorded before commands carried a look-ahead: the plant held the last one.
-                data = {**data, "controller": {**controller, "lookahead_periods": 0}}
             config = config_from_mapping(data, f"{run_log.path} (recorded config)")
-        except (ValueError, RecursionError) as error:
+        except (ValueError, RecursionError) as error:  # refused today: another version
             config_error = f"recorded config unusable: {error}"
     if config is None and design_record.ATTACHMENT_NAME not in run_log.attachments:
         # Nothing to re-run: no design in the log, and no config to rebuild it from.
@@ -83,6 +83,8 @@ def verify(run_log: RunLog) -> VerifyResult:
     command = run_log.topics["/command"].values
     timing = run_log.topics["/timing"].values
     count = min(len(sensor), len(command), len(timing))  # a truncated log: as far as it goes
+    if count == 0:
+        raise LogFormatError(f"{run_log.path}: no control cycle recorded, nothing to verify")
     if count and not (np.array_equal(sensor["cycle"][:count], command["cycle"][:count])):
         raise LogFormatError(f"{run_log.path}: /sensor and /command cycles do not line up")
     design, source, difference = _designs(run_log, config)
@@ -116,6 +118,33 @@ def verify(run_log: RunLog) -> VerifyResult:
             return VerifyResult(index + 1, mismatch, source, difference)
         held_v = replayed_v
     return VerifyResult(count, None, source, difference)
+
+
+def _not_finite(token: str) -> float:
+    raise ValueError(f"{token} is not a number a run's config can hold")
+
+
+def _finite(token: str) -> float:
+    value = float(token)
+    if not math.isfinite(value):
+        raise ValueError(f"{token} overflows a float")
+    return value
+
+
+def _recorded_config_data(path: str, text: str) -> dict[str, Any]:
+    """The recorded config's mapping; LogFormatError where it is not one a run could have
+    written (not strict JSON, NaN or infinities, not an object): a damaged or altered log,
+    whose commands nothing can vouch for. (A config today's code merely refuses is another
+    version's: its recorded design still replays.)"""
+    try:
+        data = json.loads(text, parse_constant=_not_finite, parse_float=_finite)
+    except (ValueError, RecursionError) as error:
+        raise LogFormatError(
+            f"{path}: the recorded config is damaged ({error}), cannot verify"
+        ) from error
+    if not isinstance(data, dict):
+        raise LogFormatError(f"{path}: the recorded config is not a JSON object, cannot verify")
+    return data
 
 
 def _designs(

@@ -54,6 +54,34 @@ def check_stays_on_host(bus: BusSection) -> None:
         )
 
 
+def check_before_start(bus: BusSection) -> None:
+    """Raise BusError for a bus that ``ballbeam run``, ``daemon`` or ``emulator`` cannot use,
+    before any process starts or log is made: one whose traffic leaves the host; python-can's
+    ``virtual`` bus, which lives inside one interpreter (tests run both nodes in one process on
+    it), while the daemon and the emulator are processes of their own; a SocketCAN interface
+    this host does not have (looked up, not opened: nothing is sent)."""
+    check_stays_on_host(bus)
+    if bus.interface == "virtual":
+        raise BusError(
+            "bus.interface = 'virtual' is python-can's in-process bus: the daemon and the "
+            "emulator are separate processes and would never hear each other; use "
+            "udp_multicast (the default) or socketcan"
+        )
+    if bus.interface == "socketcan":
+        if not socketcan_available():
+            raise BusError(
+                f"cannot use bus socketcan:{bus.channel}: this kernel has no SocketCAN "
+                "(AF_CAN sockets); use udp_multicast (the default)"
+            )
+        try:
+            socket.if_nametoindex(bus.channel)
+        except OSError:
+            raise BusError(
+                f"cannot use bus socketcan:{bus.channel}: no such interface; "
+                + VCAN_HINT.format(channel=bus.channel)
+            ) from None
+
+
 def isolated_group(group: str) -> str:
     """The same group prefix with random low 64 bits: a private bus for one run, as long as
     its sockets hear only their own group (open_bus sees to that; python-can alone binds the

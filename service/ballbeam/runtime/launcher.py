@@ -34,7 +34,11 @@ from ballbeam.config import Config, load_config
 from ballbeam.errors import BallbeamError
 from ballbeam.files import remove_if_empty
 from ballbeam.protocol.secoc import SECRET_BYTES
-from ballbeam.runtime.bus import check_stays_on_host, free_udp_port, isolated_group
+from ballbeam.runtime.bus import (
+    check_before_start,
+    free_udp_port,
+    isolated_group,
+)
 from ballbeam.runtime.exit_codes import (
     EXIT_FAILED,
     EXIT_OK,
@@ -172,7 +176,7 @@ def launch_run(
     """Run one scenario; ``on_started`` gets both processes (benchmarks watch their memory).
     With ``live_port`` the daemon serves the run live on that loopback port (``--live``)."""
     config = load_config(config_path, overrides)
-    check_stays_on_host(config.bus)
+    check_before_start(config.bus)  # nothing started, no log made
     live_args: list[str] = []
     if live_port is not None:
         from ballbeam.runtime.live import check_port_free, live_url

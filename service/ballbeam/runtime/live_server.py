@@ -4,10 +4,11 @@ Started by the daemon's :class:`~ballbeam.runtime.live.LiveView`, never by hand.
 frames from its standard input (``runtime/live.py`` defines them): the log's channels, then
 "serve", then each chunk the daemon's recorder has written, as the chunk's message records.
 It serves the channels with the official ``foxglove-sdk`` WebSocket server on the loopback
-interface and forwards each chunk's messages on the channels some client subscribed to, with
-the log's own bytes and log times. It answers on its standard output, one JSON line each: once
-serving (or why it cannot), and at the end of its input (the daemon's run is over, or the
-daemon died) what it forwarded, after it has stopped its server.
+interface, behind a relay that also accepts the protocol's older subprotocol name
+(``runtime/live_relay.py``), and forwards each chunk's messages on the channels some client
+subscribed to, with the log's own bytes and log times. It answers on its standard output, one
+JSON line each: once serving (or why it cannot), and at the end of its input (the daemon's run
+is over, or the daemon died) what it forwarded, after it has stopped its server.
 
 Its work (parsing, filtering, the SDK's calls and its server threads) is its own CPU time and
 its own interpreter lock: the control loop in the daemon never waits for it.
@@ -40,6 +41,7 @@ from ballbeam.runtime.live import (
     LIVE_HOST,
     parse_channel_frame,
 )
+from ballbeam.runtime.live_relay import SubprotocolRelay
 
 POLL_S = 0.005  # how often an idle server looks for the daemon's next frame
 READ_BYTES = 1 << 20  # the pipe's size: one read takes whatever is there
@@ -82,6 +84,7 @@ class LiveServer:
         self._context = foxglove.Context()
         self._subscriptions = _Subscriptions()
         self._server: WebSocketServer | None = None
+        self._relay: SubprotocolRelay | None = None
         self._channels: dict[int, foxglove.Channel] = {}  # MCAP channel id → SDK channel
         self.chunks = 0
         self.messages = 0
@@ -104,10 +107,12 @@ class LiveServer:
     def serve(self) -> dict[str, Any]:
         """Start the server; the answer for the daemon (``serving``, or ``error`` and errno)."""
         try:
+            # On a private loopback port: clients come through the relay (both subprotocol
+            # names; runtime/live_relay.py).
             self._server = foxglove.start_server(
                 name=self._name,
                 host=LIVE_HOST,
-                port=self._port,
+                port=0,
                 context=self._context,
                 server_listener=self._subscriptions,
                 message_backlog_size=self._backlog_messages,
@@ -115,6 +120,12 @@ class LiveServer:
         except RuntimeError as exc:  # the SDK reports every start failure as one
             text = str(exc)
             return {"error": text, "errno": errno.EADDRINUSE if "in use" in text else None}
+        relay = SubprotocolRelay(LIVE_HOST, self._port, self._server.port)
+        try:
+            relay.start()
+        except OSError as exc:
+            return {"error": exc.strerror or str(exc), "errno": exc.errno}
+        self._relay = relay
         # What starting cost (the interpreter, the SDK, the server's threads), apart from
         # what serving the run costs after it.
         usage = resource.getrusage(resource.RUSAGE_SELF)
@@ -147,6 +158,8 @@ class LiveServer:
             channel.close()
         if self._server is not None:
             self._server.stop()
+        if self._relay is not None:
+            self._relay.stop()
 
     def figures(self) -> dict[str, int]:
         return {
