@@ -151,8 +151,13 @@ def command_daemon(args: argparse.Namespace) -> int:
     from ballbeam.runtime.daemon.loop import PlantLostError
     from ballbeam.runtime.daemon.node import run_daemon
     from ballbeam.runtime.exit_codes import EXIT_PLANT_LOST, exit_code
-    from ballbeam.runtime.process import new_log_path, secret_from_arguments
+    from ballbeam.runtime.process import (
+        forbid_core_dumps,
+        new_log_path,
+        secret_from_arguments,
+    )
 
+    forbid_core_dumps()  # before the key is read: a core would hold it (runtime/process.py)
     configure_logging()
     config = config_from_arguments(args)
     live_port = _live_port(args)
@@ -163,6 +168,9 @@ def command_daemon(args: argparse.Namespace) -> int:
     except PlantLostError as error:
         print(f"ballbeam: error: {error}", file=sys.stderr)
         return EXIT_PLANT_LOST
+    finally:
+        if secret is not None:
+            secret.wipe()
     print(log_path)
     code = exit_code(end_reason)
     if code:
@@ -172,12 +180,18 @@ def command_daemon(args: argparse.Namespace) -> int:
 
 
 def command_emulator(args: argparse.Namespace) -> int:
-    from ballbeam.runtime.process import secret_from_arguments
+    from ballbeam.runtime.process import forbid_core_dumps, secret_from_arguments
     from ballbeam_emulator.main import run_emulator
 
+    forbid_core_dumps()  # before the key is read: a core would hold it (runtime/process.py)
     configure_logging()
     config = config_from_arguments(args)
-    run_emulator(config, secret_from_arguments(args))
+    secret = secret_from_arguments(args)
+    try:
+        run_emulator(config, secret)
+    finally:
+        if secret is not None:
+            secret.wipe()
     return 0
 
 

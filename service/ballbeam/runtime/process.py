@@ -1,9 +1,10 @@
-"""What every node process does around its loop: CPU and scheduling, a settled heap, the
-provenance a log records (package versions, git revision), the log's file name."""
+"""What every node process does around its loop: CPU and scheduling, no core dumps, a settled
+heap, the provenance a log records (package versions, git revision), the log's file name."""
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import ctypes
 import datetime as dt
 import gc
@@ -14,11 +15,13 @@ import resource
 import secrets
 import signal
 import subprocess
+from collections.abc import Iterator
 from importlib import metadata
 from pathlib import Path
 
 from ballbeam.config import Config, load_config, resolve_config_path
 from ballbeam.errors import RecorderError
+from ballbeam.protocol.secoc import RunKey
 from ballbeam.runtime.ticker import scheduled_realtime
 
 log = logging.getLogger("ballbeam")
@@ -134,6 +137,53 @@ def request_fair_slice(slice_us: int) -> str:
 
 
 _PR_SET_PDEATHSIG = 1  # linux/prctl.h
+_PR_GET_DUMPABLE = 3
+_PR_SET_DUMPABLE = 4
+
+
+def _prctl(option: int, value: int = 0) -> int:
+    """``prctl(option, value)``: its result, or -1 where there is none (not Linux)."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        return int(libc.prctl(option, value, 0, 0, 0))
+    except (OSError, AttributeError):
+        return -1
+
+
+def dumpable() -> int:
+    """This process's dumpable flag (``PR_GET_DUMPABLE``: 1 yes, 0 no; -1: not Linux)."""
+    return _prctl(_PR_GET_DUMPABLE)
+
+
+def forbid_core_dumps() -> None:
+    """Never write this process's memory anywhere: core size limit 0 (soft and hard: nothing
+    it starts can raise it again) and not dumpable (``PR_SET_DUMPABLE`` 0: no core even
+    through a piped ``core_pattern``, which ignores the size limit, and no ptrace or
+    /proc/PID/mem for other processes of the same user). A node holds the run's key for the
+    whole run: a crash or a ``kill -ABRT`` would otherwise write it, with the rest of the
+    heap, into a core file in the working directory."""
+    with contextlib.suppress(ValueError, OSError):
+        resource.setrlimit(resource.RLIMIT_CORE, (0, 0))
+    if _prctl(_PR_SET_DUMPABLE, 0) not in (0, -1):
+        log.warning("cannot make this process undumpable: %s", os.strerror(ctypes.get_errno()))
+
+
+@contextlib.contextmanager
+def no_core_dumps_while() -> Iterator[None]:
+    """:func:`forbid_core_dumps` for a while (the launcher holds the key only to hand it on),
+    then the process's soft core limit and dumpable flag as they were."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_CORE)
+    was_dumpable = dumpable()
+    with contextlib.suppress(ValueError, OSError):
+        resource.setrlimit(resource.RLIMIT_CORE, (0, hard))
+    _prctl(_PR_SET_DUMPABLE, 0)
+    try:
+        yield
+    finally:
+        if was_dumpable > 0:
+            _prctl(_PR_SET_DUMPABLE, was_dumpable)
+        with contextlib.suppress(ValueError, OSError):
+            resource.setrlimit(resource.RLIMIT_CORE, (soft, hard))
 
 
 def stop_with_parent() -> None:
@@ -231,8 +281,9 @@ def add_secret_argument(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def secret_from_arguments(args: argparse.Namespace) -> bytes | None:
-    """The secret ``--secret-fd`` names (read once, the descriptor closed), or None."""
+def secret_from_arguments(args: argparse.Namespace) -> RunKey | None:
+    """The secret ``--secret-fd`` names (read once, the descriptor closed), or None. The
+    caller wipes it when its run ends."""
     from ballbeam.errors import BusError
     from ballbeam.protocol.secoc import read_secret
 
