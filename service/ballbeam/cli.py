@@ -6,6 +6,7 @@ Errors a user can cause print one line and exit 2; nothing prints a traceback.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -373,9 +374,25 @@ def _scheduler_address(text: str) -> str:
     return text
 
 
+def _resume_command(command: str, args: argparse.Namespace, output: Path,
+                    *extra: str) -> str:
+    """The command line that takes an interrupted study up again where it stopped: the same
+    spec (as a path that works from anywhere, or the shipped name given), output, cluster."""
+    import shlex
+
+    spec = Path(args.spec)
+    argv = ["ballbeam", command, str(spec.absolute()) if spec.exists() else args.spec,
+            "--output", str(output.absolute()), *extra]
+    if args.scheduler:
+        argv += ["--scheduler", args.scheduler]
+    if args.workers:
+        argv += ["--workers", str(args.workers)]
+    return shlex.join(argv)
+
+
 def command_sweep(args: argparse.Namespace) -> int:
     from ballbeam.studies.cluster import dask_client, import_studies_extra
-    from ballbeam.studies.engine import metric_columns, run_sweep
+    from ballbeam.studies.engine import metric_columns, run_sweep, stored_points
     from ballbeam.studies.report import failures_text, plot_sweep, summary_text
     from ballbeam.studies.spec import load_spec
 
@@ -384,13 +401,20 @@ def command_sweep(args: argparse.Namespace) -> int:
     output = Path(args.output) if args.output else (
         spec.output or Path("sweep-results") / spec.path.stem
     )
-    outcome = run_sweep(
-        spec,
-        output,
-        lambda: dask_client(args.scheduler, args.workers),
-        retry_failed=args.retry_failed,
-        progress=not args.json,
-    )
+    try:
+        outcome = run_sweep(
+            spec,
+            output,
+            lambda: dask_client(args.scheduler, args.workers),
+            retry_failed=args.retry_failed,
+            progress=not args.json,
+        )
+    except KeyboardInterrupt:
+        kept, total = stored_points(spec, output)
+        print(f"\nballbeam: sweep interrupted: {kept} of {total} points are saved in "
+              f"{(output / 'points').absolute()}; resume with: "
+              f"{_resume_command('sweep', args, output)}", file=sys.stderr)
+        return 130
     metrics = metric_columns(outcome.table, spec)
     plots = [] if args.no_plots else plot_sweep(outcome.table, spec, metrics, output / "plots")
     report = {
@@ -424,15 +448,30 @@ def command_sweep(args: argparse.Namespace) -> int:
 
 def command_tune(args: argparse.Namespace) -> int:
     from ballbeam.studies.cluster import dask_client, import_studies_extra
-    from ballbeam.studies.tune import load_tune_spec, markdown_table, run_tune
+    from ballbeam.studies.tune import (
+        STUDY_FILE,
+        completed_trials,
+        load_tune_spec,
+        markdown_table,
+        run_tune,
+    )
 
     spec = load_tune_spec(args.spec)
+    if args.trials is not None:
+        spec = dataclasses.replace(spec, trials=args.trials)
     import_studies_extra()
     output = Path(args.output) if args.output else (
         spec.output or Path("sweep-results") / spec.path.stem
     )
-    with dask_client(args.scheduler, args.workers) as client:
-        outcome = run_tune(spec, output, client, progress=not args.json)
+    try:
+        with dask_client(args.scheduler, args.workers) as client:
+            outcome = run_tune(spec, output, client, progress=not args.json)
+    except KeyboardInterrupt:
+        trials = ["--trials", str(args.trials)] if args.trials is not None else []
+        print(f"\nballbeam: tune interrupted: {completed_trials(output)} of {spec.trials} "
+              f"trials are saved in {(output / STUDY_FILE).absolute()}; resume with: "
+              f"{_resume_command('tune', args, output, *trials)}", file=sys.stderr)
+        return 130
     report = {
         "spec": str(spec.path),
         "trials": spec.trials,
@@ -597,7 +636,12 @@ def build_parser() -> argparse.ArgumentParser:
     tune.add_argument("spec", metavar="SPEC.toml", help="tuning spec (or a shipped one, "
                       "e.g. sweeps/tune_robust_rest)")
     tune.add_argument("--output", metavar="DIR", help="results directory (default: the spec's "
-                      "tune.output, else sweep-results/<spec name>)")
+                      "tune.output, else sweep-results/<spec name>); its study.db keeps the "
+                      "trials, and a tuning run again there resumes")
+    tune.add_argument("--trials", type=_positive_int, default=None, metavar="N",
+                      help="whole trials the study should hold (default: the spec's "
+                      "tune.trials); those a stopped tuning left in DIR count, so the same "
+                      "command resumes it and a larger N tunes on")
     _add_cluster_arguments(tune)
     tune.add_argument("--json", action="store_true", help="print one JSON object, no bar")
     tune.set_defaults(handler=command_tune)
