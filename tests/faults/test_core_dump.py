@@ -12,6 +12,7 @@ the kernel would write one).
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import resource
 import signal
@@ -121,6 +122,29 @@ def test_forbidding_core_dumps_makes_the_process_undumpable() -> None:
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                             timeout=60, check=True)
     assert result.stdout.split() == ["1", "0", "0", "0"]
+
+
+def test_the_launcher_is_undumpable_only_while_it_holds_the_key() -> None:
+    """Nested (two launches in threads overlap): the state before the first is restored when
+    the last leaves, not before."""
+    code = (
+        "import json, resource\n"
+        "from ballbeam.runtime.process import dumpable, no_core_dumps_while\n"
+        "_, hard = resource.getrlimit(resource.RLIMIT_CORE)\n"
+        "resource.setrlimit(resource.RLIMIT_CORE, (hard, hard))\n"
+        "def state(): return [dumpable(), resource.getrlimit(resource.RLIMIT_CORE)[0] == 0]\n"
+        "with no_core_dumps_while():\n"
+        "    inside = state()\n"
+        "    with no_core_dumps_while():\n"
+        "        pass\n"
+        "    after_inner = state()\n"
+        "print(json.dumps([inside, after_inner, state(), hard == 0]))\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                            timeout=60, check=True)
+    inside, after_inner, after, no_cores_at_all = json.loads(result.stdout)
+    assert inside == after_inner == [0, True]
+    assert after == [1, no_cores_at_all]
 
 
 def test_the_run_key_is_overwritten_in_place_when_wiped() -> None:

@@ -15,6 +15,7 @@ import resource
 import secrets
 import signal
 import subprocess
+import threading
 from collections.abc import Iterator
 from importlib import metadata
 from pathlib import Path
@@ -168,22 +169,36 @@ def forbid_core_dumps() -> None:
         log.warning("cannot make this process undumpable: %s", os.strerror(ctypes.get_errno()))
 
 
+_NO_DUMP_LOCK = threading.Lock()
+_no_dump_holders = 0  # launches inside no_core_dumps_while now (regress launches in threads)
+_dump_state_before: tuple[int, int, int] = (1, 0, 0)  # dumpable, soft and hard core limits
+
+
 @contextlib.contextmanager
 def no_core_dumps_while() -> Iterator[None]:
     """:func:`forbid_core_dumps` for a while (the launcher holds the key only to hand it on),
-    then the process's soft core limit and dumpable flag as they were."""
-    soft, hard = resource.getrlimit(resource.RLIMIT_CORE)
-    was_dumpable = dumpable()
-    with contextlib.suppress(ValueError, OSError):
-        resource.setrlimit(resource.RLIMIT_CORE, (0, hard))
-    _prctl(_PR_SET_DUMPABLE, 0)
+    then the process's soft core limit and dumpable flag as they were before the first of the
+    threads that overlap in here came in."""
+    global _no_dump_holders, _dump_state_before
+    with _NO_DUMP_LOCK:
+        if _no_dump_holders == 0:
+            soft, hard = resource.getrlimit(resource.RLIMIT_CORE)
+            _dump_state_before = (dumpable(), soft, hard)
+            with contextlib.suppress(ValueError, OSError):
+                resource.setrlimit(resource.RLIMIT_CORE, (0, hard))
+            _prctl(_PR_SET_DUMPABLE, 0)
+        _no_dump_holders += 1
     try:
         yield
     finally:
-        if was_dumpable > 0:
-            _prctl(_PR_SET_DUMPABLE, was_dumpable)
-        with contextlib.suppress(ValueError, OSError):
-            resource.setrlimit(resource.RLIMIT_CORE, (soft, hard))
+        with _NO_DUMP_LOCK:
+            _no_dump_holders -= 1
+            if _no_dump_holders == 0:
+                was_dumpable, soft, hard = _dump_state_before
+                if was_dumpable > 0:
+                    _prctl(_PR_SET_DUMPABLE, was_dumpable)
+                with contextlib.suppress(ValueError, OSError):
+                    resource.setrlimit(resource.RLIMIT_CORE, (soft, hard))
 
 
 def stop_with_parent() -> None:
