@@ -4,9 +4,11 @@ on the held-out set equal the same runs made one by one through ``run_offline``.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import shlex
 import signal
+import sqlite3
 import subprocess
 import sys
 import time
@@ -129,21 +131,28 @@ def _resume_argv(errors: str) -> list[str]:
 
 
 def _complete_trials(output: Path) -> list[Any]:
+    """The whole trials of the study in ``output``, read once no tuning runs there."""
     import optuna
     from optuna.trial import TrialState
 
-    if not (output / "study.db").is_file():
-        return []
-    from sqlalchemy.exc import OperationalError
+    study = optuna.load_study(study_name="ballbeam-tune",
+                              storage=f"sqlite:///{output / 'study.db'}")
+    return study.get_trials(states=(TrialState.COMPLETE,))
 
+
+def _complete_count_while_running(output: Path) -> int:
+    """The same count while the tuning writes: read-only SQL, which neither creates the schema
+    nor waits for a write (Optuna's loader would do both, racing the tuning's own set-up)."""
+    path = output / "study.db"
+    if not path.is_file():
+        return 0
     try:
-        study = optuna.load_study(study_name="ballbeam-tune",
-                                  storage=f"sqlite:///{output / 'study.db'}")
-        return study.get_trials(states=(TrialState.COMPLETE,))
-    except KeyError:  # the file exists, the study not yet
-        return []
-    except OperationalError:  # the tuning writes it just now ("database is locked")
-        return []
+        with contextlib.closing(sqlite3.connect(f"file:{path}?mode=ro", uri=True,
+                                                timeout=0.1)) as db:
+            (count,) = db.execute("SELECT count(*) FROM trials WHERE state = 'COMPLETE'").fetchone()
+    except sqlite3.OperationalError:  # no table yet, or locked just now
+        return 0
+    return int(count)
 
 
 def test_an_interrupted_tuning_resumes_with_the_trials_it_kept(tmp_path: Path) -> None:
@@ -158,7 +167,7 @@ def test_an_interrupted_tuning_resumes_with_the_trials_it_kept(tmp_path: Path) -
                         "--trials", "4", "--json")],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
     )
-    errors = _interrupt_when(process, lambda: len(_complete_trials(output)) >= 2)
+    errors = _interrupt_when(process, lambda: _complete_count_while_running(output) >= 2)
     kept = {trial.number: (trial.params, trial.value) for trial in _complete_trials(output)}
     assert 2 <= len(kept) < 4
     assert (f"tune interrupted: {len(kept)} of 4 trials are saved in "

@@ -436,12 +436,9 @@ def run_tune(
     client.run(warm_up)
     in_flight_max = spec.parallel or 2 * workers
     default_params = defaults(spec)
-    scores: dict[int, SetScore] = {
-        trial.number: _stored_score(trial)
-        for trial in study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
-    }
-    done = len(scores)
     complete = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
+    scores: dict[int, SetScore] = {trial.number: _stored_score(trial) for trial in complete}
+    done = len(scores)
     default_done = any(trial.user_attrs.get("default") for trial in complete)
     waiting = study.get_trials(deepcopy=False, states=(TrialState.WAITING,))
     if not default_done and not any(trial.user_attrs.get("default") for trial in waiting):
