@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shlex
 import signal
 import subprocess
 import sys
@@ -27,7 +28,7 @@ from ballbeam.errors import ConfigError
 from ballbeam.studies.engine import run_sweep
 from ballbeam.studies.spec import SweepSpec, load_spec, spec_from_mapping
 
-from .conftest import CONFIGS, PAPER, ballbeam
+from .conftest import CONFIGS, PAPER, ballbeam, ballbeam_argv
 
 pd = pytest.importorskip("pandas")
 
@@ -208,6 +209,40 @@ def test_a_stopped_sweep_resumes_with_the_points_not_done(
     resumed = run_sweep(grown, output, lambda: nullcontext(local_dask_client), progress=False)
     assert resumed.total == 6 and resumed.ran == 3 and resumed.skipped == 3
     assert removed.exists()
+
+
+def test_an_interrupted_sweep_says_what_it_kept_and_how_to_resume(tmp_path: Path) -> None:
+    """Ctrl-C once some points are stored: exit 130, how many points are kept and where, and
+    the command that resumes; that command runs the rest only."""
+    spec_path = write_spec(tmp_path, SMALL_SPEC.replace(
+        "[0.9, 1.1, 0.05]", "{ start = 0.85, stop = 1.15, num = 6 }"))
+    output = tmp_path / "out"
+    process = subprocess.Popen(
+        ballbeam_argv("sweep", str(spec_path), "--output", str(output), "--workers", "1",
+                      "--no-plots"),
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
+    )
+    deadline = time.monotonic() + 240
+    while len(list((output / "points").glob("*.json"))) < 3:
+        assert process.poll() is None, process.communicate()[1][-3000:]
+        assert time.monotonic() < deadline
+        time.sleep(0.1)
+    process.send_signal(signal.SIGINT)
+    _, errors = process.communicate(timeout=120)
+    assert process.returncode == 130, errors[-3000:]
+    kept = len(list((output / "points").glob("*.json")))
+    assert 3 <= kept < 12
+    assert (f"sweep interrupted: {kept} of 12 points are saved in "
+            f"{(output / 'points').absolute()}") in errors
+    command = shlex.split(errors.rsplit("resume with: ", 1)[1].splitlines()[0])
+    assert command[:2] == ["ballbeam", "sweep"]
+    resumed = subprocess.run([*ballbeam_argv(*command[1:]), "--json", "--no-plots"],
+                             capture_output=True, text=True, timeout=300, check=False,
+                             cwd=tmp_path)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    report = json.loads(resumed.stdout)
+    assert report["points"] == 12 and report["skipped_done"] == kept
+    assert report["ran"] == 12 - kept
 
 
 @pytest.fixture

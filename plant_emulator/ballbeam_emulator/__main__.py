@@ -2,6 +2,10 @@
 
 import sys
 
-from ballbeam_emulator.main import main
+from ballbeam.entry import limit_blas_threads
+
+limit_blas_threads()  # before numpy: the emulator's imports load it
+
+from ballbeam_emulator.main import main  # noqa: E402
 
 sys.exit(main())

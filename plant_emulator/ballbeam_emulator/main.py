@@ -14,7 +14,7 @@ import can
 from ballbeam.config import Config
 from ballbeam.errors import BallbeamError, BusError
 from ballbeam.protocol.frames import FrameContract
-from ballbeam.protocol.secoc import FrameAuthenticator
+from ballbeam.protocol.secoc import FrameAuthenticator, RunKey
 from ballbeam.runtime.bus import check_before_start, open_bus
 from ballbeam.runtime.owner_lock import EMULATOR_SLOT, OwnerLock
 from ballbeam.runtime.peer_link import PeerLink
@@ -24,6 +24,7 @@ from ballbeam.runtime.process import (
     apply_scheduling,
     config_from_arguments,
     configure_logging,
+    forbid_core_dumps,
     resolve_config_argument,
     secret_from_arguments,
     settle_heap,
@@ -35,7 +36,7 @@ log = logging.getLogger("ballbeam.emulator")
 EXIT_USAGE = 2
 
 
-def run_emulator(config: Config, secret: bytes | None = None) -> None:
+def run_emulator(config: Config, secret: RunKey | bytes | None = None) -> None:
     contract = FrameContract.load()
     auth = None
     if config.bus.authenticated:
@@ -81,15 +82,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     add_config_arguments(parser)
     add_secret_argument(parser)
     args = parser.parse_args(argv)
+    forbid_core_dumps()  # before the key is read: a core would hold it (runtime/process.py)
     configure_logging()
+    secret = None
     try:
         resolve_config_argument(args)
         config = config_from_arguments(args)
         check_before_start(config.bus)
-        run_emulator(config, secret_from_arguments(args))
+        secret = secret_from_arguments(args)
+        run_emulator(config, secret)
     except BallbeamError as error:
         print(f"ballbeam-emulator: error: {error}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
         return 130
+    finally:
+        if secret is not None:
+            secret.wipe()
     return 0

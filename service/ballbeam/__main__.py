@@ -1,5 +1,5 @@
 import sys
 
-from ballbeam.cli import main
+from ballbeam.entry import main
 
 sys.exit(main())

@@ -6,6 +6,7 @@ Errors a user can cause print one line and exit 2; nothing prints a traceback.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -154,8 +155,13 @@ def command_daemon(args: argparse.Namespace) -> int:
     from ballbeam.runtime.daemon.loop import PlantLostError
     from ballbeam.runtime.daemon.node import run_daemon
     from ballbeam.runtime.exit_codes import EXIT_PLANT_LOST, exit_code
-    from ballbeam.runtime.process import log_from_arguments, secret_from_arguments
+    from ballbeam.runtime.process import (
+        forbid_core_dumps,
+        log_from_arguments,
+        secret_from_arguments,
+    )
 
+    forbid_core_dumps()  # before the key is read: a core would hold it (runtime/process.py)
     configure_logging()
     config = config_from_arguments(args)
     check_before_start(config.bus)  # before the log is made
@@ -172,6 +178,9 @@ def command_daemon(args: argparse.Namespace) -> int:
         if log_stream is not None:
             remove_if_empty(log_path)  # made for this run, which never began to record
         raise
+    finally:
+        if secret is not None:
+            secret.wipe()
     print(log_path)
     code = exit_code(end_reason)
     if code:
@@ -182,13 +191,19 @@ def command_daemon(args: argparse.Namespace) -> int:
 
 def command_emulator(args: argparse.Namespace) -> int:
     from ballbeam.runtime.bus import check_before_start
-    from ballbeam.runtime.process import secret_from_arguments
+    from ballbeam.runtime.process import forbid_core_dumps, secret_from_arguments
     from ballbeam_emulator.main import run_emulator
 
+    forbid_core_dumps()  # before the key is read: a core would hold it (runtime/process.py)
     configure_logging()
     config = config_from_arguments(args)
     check_before_start(config.bus)
-    run_emulator(config, secret_from_arguments(args))
+    secret = secret_from_arguments(args)
+    try:
+        run_emulator(config, secret)
+    finally:
+        if secret is not None:
+            secret.wipe()
     return 0
 
 
@@ -388,9 +403,25 @@ def _scheduler_address(text: str) -> str:
     return text
 
 
+def _resume_command(command: str, args: argparse.Namespace, output: Path,
+                    *extra: str) -> str:
+    """The command line that takes an interrupted study up again where it stopped: the same
+    spec (as a path that works from anywhere, or the shipped name given), output, cluster."""
+    import shlex
+
+    spec = Path(args.spec)
+    argv = ["ballbeam", command, str(spec.absolute()) if spec.exists() else args.spec,
+            "--output", str(output.absolute()), *extra]
+    if args.scheduler:
+        argv += ["--scheduler", args.scheduler]
+    if args.workers:
+        argv += ["--workers", str(args.workers)]
+    return shlex.join(argv)
+
+
 def command_sweep(args: argparse.Namespace) -> int:
     from ballbeam.studies.cluster import dask_client, import_studies_extra
-    from ballbeam.studies.engine import metric_columns, run_sweep
+    from ballbeam.studies.engine import metric_columns, run_sweep, stored_points
     from ballbeam.studies.report import failures_text, plot_sweep, summary_text
     from ballbeam.studies.spec import load_spec
 
@@ -399,13 +430,20 @@ def command_sweep(args: argparse.Namespace) -> int:
     output = Path(args.output) if args.output else (
         spec.output or Path("sweep-results") / spec.path.stem
     )
-    outcome = run_sweep(
-        spec,
-        output,
-        lambda: dask_client(args.scheduler, args.workers),
-        retry_failed=args.retry_failed,
-        progress=not args.json,
-    )
+    try:
+        outcome = run_sweep(
+            spec,
+            output,
+            lambda: dask_client(args.scheduler, args.workers),
+            retry_failed=args.retry_failed,
+            progress=not args.json,
+        )
+    except KeyboardInterrupt:
+        kept, total = stored_points(spec, output)
+        print(f"\nballbeam: sweep interrupted: {kept} of {total} points are saved in "
+              f"{(output / 'points').absolute()}; resume with: "
+              f"{_resume_command('sweep', args, output)}", file=sys.stderr)
+        return 130
     metrics = metric_columns(outcome.table, spec)
     plots = [] if args.no_plots else plot_sweep(outcome.table, spec, metrics, output / "plots")
     report = {
@@ -439,15 +477,30 @@ def command_sweep(args: argparse.Namespace) -> int:
 
 def command_tune(args: argparse.Namespace) -> int:
     from ballbeam.studies.cluster import dask_client, import_studies_extra
-    from ballbeam.studies.tune import load_tune_spec, markdown_table, run_tune
+    from ballbeam.studies.tune import (
+        STUDY_FILE,
+        completed_trials,
+        load_tune_spec,
+        markdown_table,
+        run_tune,
+    )
 
     spec = load_tune_spec(args.spec)
+    if args.trials is not None:
+        spec = dataclasses.replace(spec, trials=args.trials)
     import_studies_extra()
     output = Path(args.output) if args.output else (
         spec.output or Path("sweep-results") / spec.path.stem
     )
-    with dask_client(args.scheduler, args.workers) as client:
-        outcome = run_tune(spec, output, client, progress=not args.json)
+    try:
+        with dask_client(args.scheduler, args.workers) as client:
+            outcome = run_tune(spec, output, client, progress=not args.json)
+    except KeyboardInterrupt:
+        trials = ["--trials", str(args.trials)] if args.trials is not None else []
+        print(f"\nballbeam: tune interrupted: {completed_trials(output)} of {spec.trials} "
+              f"trials are saved in {(output / STUDY_FILE).absolute()}; resume with: "
+              f"{_resume_command('tune', args, output, *trials)}", file=sys.stderr)
+        return 130
     report = {
         "spec": str(spec.path),
         "trials": spec.trials,
@@ -620,7 +673,12 @@ def build_parser() -> argparse.ArgumentParser:
     tune.add_argument("spec", metavar="SPEC.toml", help="tuning spec (or a shipped one, "
                       "e.g. sweeps/tune_robust_rest)")
     tune.add_argument("--output", metavar="DIR", help="results directory (default: the spec's "
-                      "tune.output, else sweep-results/<spec name>)")
+                      "tune.output, else sweep-results/<spec name>); its study.db keeps the "
+                      "trials, and a tuning run again there resumes")
+    tune.add_argument("--trials", type=_positive_int, default=None, metavar="N",
+                      help="whole trials the study should hold (default: the spec's "
+                      "tune.trials); those a stopped tuning left in DIR count, so the same "
+                      "command resumes it and a larger N tunes on")
     _add_cluster_arguments(tune)
     tune.add_argument("--json", action="store_true", help="print one JSON object, no bar")
     tune.set_defaults(handler=command_tune)

@@ -1,7 +1,8 @@
 """Run configuration: pydantic models loaded from TOML files.
 
-A config file may ``extends = "other.toml"`` (path relative to the file) and override a few
-keys; ``--set dotted.key=value`` overrides are merged the same way and validated with the rest.
+A config file may ``extends = "other.toml"`` (path relative to the file, or a shipped config's
+name: ``extends = "paper"``) and override a few keys; ``--set dotted.key=value`` overrides are
+merged the same way and validated with the rest.
 Unknown keys, wrong types and out-of-range values are refused with a message naming the key.
 
 The repository's ``configs/`` ship with the package (``ballbeam/configs``, package data): a
@@ -923,8 +924,21 @@ def _read_toml(path: Path, depth: int = 0) -> dict[str, Any]:
         return data
     if not isinstance(parent, str):
         raise ConfigError(f"{path}: 'extends' must be a file path string")
-    base = _read_toml((path.parent / parent).resolve(), depth + 1)
+    base = _read_toml(_extended_path(path, parent), depth + 1)
     return _deep_merge(base, data)
+
+
+def _extended_path(path: Path, parent: str) -> Path:
+    """What ``extends = parent`` in ``path`` names: a file relative to ``path``, else a
+    shipped config's name (``"paper"``), as a config argument is resolved."""
+    relative = (path.parent / parent).resolve()
+    if relative.exists():
+        return relative
+    shipped = shipped_configs()
+    for candidate in (shipped / parent, shipped / f"{parent}.toml"):
+        if candidate.is_file():
+            return candidate.resolve()
+    return relative  # not found either way: reading it says so, with the path
 
 
 def parse_override(assignment: str) -> dict[str, Any]:

@@ -26,6 +26,7 @@ import pytest
 from ballbeam.config import DEFAULT_BUS_GROUP, BusSection, load_config
 from ballbeam.logs.reader import read_log
 from ballbeam.protocol.frames import PLANT_STATUS_FIELDS, VOLTAGE_COMMAND_ID, VoltageCommand
+from ballbeam.protocol.secoc import RunKey
 from ballbeam.runtime.bus import isolated_group, open_bus
 from ballbeam.runtime.exit_codes import EXIT_PLANT_LOST, EXIT_SECOND_WRITER
 
@@ -241,24 +242,28 @@ def test_the_launcher_hands_the_secret_through_a_pipe_and_never_in_argv_or_env(
             seen[name] = (list(process.args), environ)  # type: ignore[arg-type]
 
     drawn: list[bytes] = []
-    real_token_bytes = launcher.secrets.token_bytes
+    keys: list[RunKey] = []
 
-    def spy(count: int) -> bytes:
-        drawn.append(real_token_bytes(count))
-        return drawn[-1]
+    class SpiedKey(RunKey):
+        @classmethod
+        def generate(cls) -> RunKey:
+            keys.append(RunKey.generate())
+            drawn.append(bytes(keys[-1].material))
+            return keys[-1]
 
     group = isolated_group(DEFAULT_BUS_GROUP)
     overrides = ["run.mode='lockstep'", "run.duration_s=0.3", f"bus.channel='{group}'",
                  f"run.log_dir='{tmp_path}'"]
-    launcher.secrets.token_bytes = spy  # type: ignore[assignment]
+    launcher.RunKey = SpiedKey  # type: ignore[misc]
     try:
         result = launcher.launch_run(None, overrides, on_started=watch)
     finally:
-        launcher.secrets.token_bytes = real_token_bytes  # type: ignore[assignment]
+        launcher.RunKey = RunKey  # type: ignore[misc]
     assert result.daemon_exit == 0
-    keys = [token for token in drawn if len(token) == 32]  # new_log_file draws 3 bytes too
-    assert len(keys) == 1
-    secret = keys[0]
+    assert len(drawn) == 1
+    secret = drawn[0]
+    # The launcher held it only to write the pipes: overwritten since.
+    assert keys[0].wiped and keys[0]._buffer == bytearray(len(secret))
     for name, (argv, environ) in seen.items():
         assert "--secret-fd" in argv, (name, argv)
         blob = " ".join(argv) + json.dumps(environ)

@@ -16,7 +16,8 @@ controller's look-ahead (``frames.encode_lookahead``, 40 bytes), making a 64-byt
 MAC covers the payload and the extension together.
 
 keyed by a per-run 32-byte secret the launcher hands to both processes through an inherited
-pipe (never argv, never the environment, never the log).
+pipe (never argv, never the environment, never the log). Each process keeps it in a
+:class:`RunKey`, a buffer it overwrites when the run ends.
 
 A receiver accepts a frame of a stream (arbitration id) only if its MAC is right, its freshness
 is strictly greater than the last it accepted on that stream, and within ``window_ns`` of its
@@ -32,8 +33,10 @@ second writer.
 
 from __future__ import annotations
 
+import ctypes
 import hashlib
 import hmac
+import os
 import time
 from collections import deque
 from typing import Final, Literal, TypeAlias
@@ -54,16 +57,75 @@ AuthVerdict: TypeAlias = Literal["ok", "unauthenticated", "bad_mac", "replayed",
 OwnVerdict: TypeAlias = Literal["echo", "replayed", "not_sent", "invalid"]
 
 
+class RunKey:
+    """The run's secret in a buffer of this process's own, overwritten by :meth:`wipe`.
+
+    What a wipe reaches, and what it cannot: the key lives only in this ``bytearray`` (read
+    into it from the pipe or the OS, never through a ``bytes`` object, which is immutable and
+    whose memory is freed unwiped). Each MAC is ``hmac.digest`` over this buffer: CPython hands
+    it to OpenSSL's one-shot HMAC, whose context (key pads included) OpenSSL cleanses when it
+    frees it; the pure-Python fallback, used only without OpenSSL, makes ``bytes`` copies of
+    the padded key that no one can wipe. A key given as ``bytes`` (tests, benchmarks) is
+    copied in, and the caller's object stays as it was. Nothing here keeps the pages out of
+    swap (no ``mlock``): the nodes forbid core dumps instead (``runtime/process.py``).
+    """
+
+    __slots__ = ("_buffer", "_wiped")
+
+    def __init__(self, buffer: bytearray) -> None:
+        """Takes ``buffer`` over (no copy): wiping the key overwrites that very object."""
+        if len(buffer) != SECRET_BYTES:
+            raise ValueError(f"the run secret must be {SECRET_BYTES} bytes, got {len(buffer)}")
+        self._buffer = buffer
+        self._wiped = False
+
+    @classmethod
+    def generate(cls) -> RunKey:
+        """A new key from the OS's random source, read straight into the buffer."""
+        buffer = bytearray(SECRET_BYTES)
+        with open("/dev/urandom", "rb", buffering=0) as source:
+            if source.readinto(buffer) != SECRET_BYTES:
+                raise OSError("a short read from /dev/urandom")
+        return cls(buffer)
+
+    @property
+    def material(self) -> bytearray:
+        """The key's bytes (the buffer itself: do not keep or copy it)."""
+        if self._wiped:
+            raise ValueError("the run key has been wiped")
+        return self._buffer
+
+    @property
+    def wiped(self) -> bool:
+        return self._wiped
+
+    def wipe(self) -> None:
+        """Overwrite the key's bytes in place with zeros; using the key afterwards raises."""
+        if len(self._buffer):
+            ctypes.memset((ctypes.c_char * len(self._buffer)).from_buffer(self._buffer), 0,
+                          len(self._buffer))
+        self._wiped = True
+
+    def __enter__(self) -> RunKey:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.wipe()
+
+    def __repr__(self) -> str:  # never the key itself, not even in a traceback
+        return f"RunKey({'wiped' if self._wiped else f'{SECRET_BYTES} bytes'})"
+
+
 class FrameAuthenticator:
     """Protects outgoing frames and judges incoming ones for one node of one run."""
 
     __slots__ = ("_echoed", "_key", "_last_accepted", "_last_sent", "_sent", "_sent_set",
                  "window_ns")
 
-    def __init__(self, secret: bytes, window_ns: int = DEFAULT_WINDOW_NS) -> None:
-        if len(secret) != SECRET_BYTES:
-            raise ValueError(f"the run secret must be {SECRET_BYTES} bytes, got {len(secret)}")
-        self._key = bytes(secret)
+    def __init__(self, secret: RunKey | bytes, window_ns: int = DEFAULT_WINDOW_NS) -> None:
+        """``secret``: the run's key (shared, not copied: wiping it ends this authenticator
+        too), or its 32 bytes (copied into a key of its own)."""
+        self._key = secret if isinstance(secret, RunKey) else RunKey(bytearray(secret))
         self.window_ns = window_ns
         self._last_sent = 0
         self._last_accepted: dict[int, int] = {}
@@ -74,7 +136,11 @@ class FrameAuthenticator:
 
     def _mac(self, arbitration_id: int, freshness: bytes, payload: bytes) -> bytes:
         message = arbitration_id.to_bytes(4, "little") + freshness + payload
-        return hmac.digest(self._key, message, hashlib.sha256)[:MAC_BYTES]
+        return hmac.digest(self._key.material, message, hashlib.sha256)[:MAC_BYTES]
+
+    def wipe(self) -> None:
+        """Overwrite the key (the run is over): no frame can be protected or judged after."""
+        self._key.wipe()
 
     def protect(self, arbitration_id: int, payload: bytes, extension: bytes = b"") -> bytes:
         """The authenticated frame data for a classic 8-byte ``payload`` (24 bytes), or with
@@ -161,20 +227,25 @@ def extension_of(data: bytes) -> bytes:
     return data[CLASSIC_LENGTH:-TRAILER_BYTES]
 
 
-def read_secret(fd: int) -> bytes:
+def read_secret(fd: int) -> RunKey:
     """The run secret from an inherited file descriptor (a pipe the launcher wrote and closed,
-    or a file); the descriptor is closed afterwards. ValueError unless exactly 32 bytes."""
-    import os
-
-    secret = b""
+    or a file), read straight into a :class:`RunKey`'s buffer; the descriptor is closed
+    afterwards. ValueError unless exactly 32 bytes."""
+    buffer = bytearray(SECRET_BYTES)
+    view = memoryview(buffer)
+    filled = 0
     try:
-        while len(secret) <= SECRET_BYTES:  # one byte more than needed: longer input is refused
-            chunk = os.read(fd, SECRET_BYTES + 1 - len(secret))
-            if not chunk:
+        while filled < SECRET_BYTES:
+            count = os.readv(fd, [view[filled:]])
+            if not count:
                 break
-            secret += chunk
+            filled += count
+        longer = filled == SECRET_BYTES and os.read(fd, 1) != b""  # longer input is refused
     finally:
+        view.release()
         os.close(fd)
-    if len(secret) != SECRET_BYTES:
+    key = RunKey(buffer)
+    if filled != SECRET_BYTES or longer:
+        key.wipe()
         raise ValueError(f"the run secret on fd {fd} must be {SECRET_BYTES} bytes")
-    return secret
+    return key

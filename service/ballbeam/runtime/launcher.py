@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import secrets
 import signal
 import subprocess
 import sys
@@ -33,7 +32,7 @@ from mcap.writer import MCAP0_MAGIC
 from ballbeam.config import Config, load_config
 from ballbeam.errors import BallbeamError
 from ballbeam.files import remove_if_empty
-from ballbeam.protocol.secoc import SECRET_BYTES
+from ballbeam.protocol.secoc import RunKey
 from ballbeam.runtime.bus import (
     check_before_start,
     free_udp_port,
@@ -47,7 +46,12 @@ from ballbeam.runtime.exit_codes import (
 )
 from ballbeam.runtime.owner_lock import PEER_LOCK_ENV, create_owner_lock
 from ballbeam.runtime.peer_link import PEER_LINK_ENV, PEER_LINK_WRITE_ENV, peer_link_pipe
-from ballbeam.runtime.process import new_log_file, realtime_permitted, realtime_refused_message
+from ballbeam.runtime.process import (
+    new_log_file,
+    no_core_dumps_while,
+    realtime_permitted,
+    realtime_refused_message,
+)
 
 STOP_GRACE_S = 5.0
 # The daemon's exits after which its run is recorded whole (summarised by ``ballbeam run``).
@@ -130,7 +134,7 @@ def _stop(process: subprocess.Popen[str]) -> int:
     return process.wait()
 
 
-def secret_pipe(secret: bytes) -> int:
+def secret_pipe(secret: bytes | bytearray) -> int:
     """A pipe's read end holding ``secret``, its write end closed: a child inherits it with
     ``pass_fds`` and reads the secret with ``--secret-fd N`` (the number, never the secret, is
     on its command line). 32 bytes fit in any pipe buffer, so the write never blocks."""
@@ -216,11 +220,13 @@ def launch_run(
     lock_fd = create_owner_lock()  # its fast half, where glibc has robust mutexes
     lock_env = {} if lock_fd is None else {PEER_LOCK_ENV: str(lock_fd)}
     # The run's frame-authentication key (protocol/secoc.py): to each child through a pipe of
-    # its own, never on a command line, in the environment or in the log.
-    secret = secrets.token_bytes(SECRET_BYTES) if config.bus.authenticated else None
-    emulator_secret = secret_pipe(secret) if secret is not None else None
-    daemon_secret = secret_pipe(secret) if secret is not None else None
-    del secret
+    # its own, never on a command line, in the environment or in the log. The launcher holds
+    # it only to write the pipes, undumpable meanwhile, then overwrites it.
+    emulator_secret = daemon_secret = None
+    if config.bus.authenticated:
+        with no_core_dumps_while(), RunKey.generate() as key:
+            emulator_secret = secret_pipe(key.material)
+            daemon_secret = secret_pipe(key.material)
 
     def secret_args(fd: int | None) -> list[str]:
         return [] if fd is None else ["--secret-fd", str(fd)]

@@ -1,9 +1,10 @@
-"""What every node process does around its loop: CPU and scheduling, a settled heap, the
-provenance a log records (package versions, git revision), the log's file name."""
+"""What every node process does around its loop: CPU and scheduling, no core dumps, a settled
+heap, the provenance a log records (package versions, git revision), the log's file name."""
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import ctypes
 import datetime as dt
 import gc
@@ -15,6 +16,8 @@ import secrets
 import signal
 import stat
 import subprocess
+import threading
+from collections.abc import Iterator
 from importlib import metadata
 from pathlib import Path
 from typing import BinaryIO
@@ -22,6 +25,7 @@ from typing import BinaryIO
 from ballbeam.config import Config, load_config, resolve_config_path
 from ballbeam.errors import OutputExistsError, RecorderError
 from ballbeam.files import create_new, exists_message
+from ballbeam.protocol.secoc import RunKey
 from ballbeam.runtime.ticker import scheduled_realtime
 
 log = logging.getLogger("ballbeam")
@@ -197,6 +201,67 @@ def request_fair_slice(slice_us: int) -> str:
 
 
 _PR_SET_PDEATHSIG = 1  # linux/prctl.h
+_PR_GET_DUMPABLE = 3
+_PR_SET_DUMPABLE = 4
+
+
+def _prctl(option: int, value: int = 0) -> int:
+    """``prctl(option, value)``: its result, or -1 where there is none (not Linux)."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        return int(libc.prctl(option, value, 0, 0, 0))
+    except (OSError, AttributeError):
+        return -1
+
+
+def dumpable() -> int:
+    """This process's dumpable flag (``PR_GET_DUMPABLE``: 1 yes, 0 no; -1: not Linux)."""
+    return _prctl(_PR_GET_DUMPABLE)
+
+
+def forbid_core_dumps() -> None:
+    """Never write this process's memory anywhere: core size limit 0 (soft and hard: nothing
+    it starts can raise it again) and not dumpable (``PR_SET_DUMPABLE`` 0: no core even
+    through a piped ``core_pattern``, which ignores the size limit, and no ptrace or
+    /proc/PID/mem for other processes of the same user). A node holds the run's key for the
+    whole run: a crash or a ``kill -ABRT`` would otherwise write it, with the rest of the
+    heap, into a core file in the working directory."""
+    with contextlib.suppress(ValueError, OSError):
+        resource.setrlimit(resource.RLIMIT_CORE, (0, 0))
+    if _prctl(_PR_SET_DUMPABLE, 0) not in (0, -1):
+        log.warning("cannot make this process undumpable: %s", os.strerror(ctypes.get_errno()))
+
+
+_NO_DUMP_LOCK = threading.Lock()
+_no_dump_holders = 0  # launches inside no_core_dumps_while now (regress launches in threads)
+_dump_state_before: tuple[int, int, int] = (1, 0, 0)  # dumpable, soft and hard core limits
+
+
+@contextlib.contextmanager
+def no_core_dumps_while() -> Iterator[None]:
+    """:func:`forbid_core_dumps` for a while (the launcher holds the key only to hand it on),
+    then the process's soft core limit and dumpable flag as they were before the first of the
+    threads that overlap in here came in."""
+    global _no_dump_holders, _dump_state_before
+    with _NO_DUMP_LOCK:
+        if _no_dump_holders == 0:
+            soft, hard = resource.getrlimit(resource.RLIMIT_CORE)
+            _dump_state_before = (dumpable(), soft, hard)
+            with contextlib.suppress(ValueError, OSError):
+                resource.setrlimit(resource.RLIMIT_CORE, (0, hard))
+            _prctl(_PR_SET_DUMPABLE, 0)
+        _no_dump_holders += 1
+    try:
+        yield
+    finally:
+        with _NO_DUMP_LOCK:
+            _no_dump_holders -= 1
+            if _no_dump_holders == 0:
+                was_dumpable, soft, hard = _dump_state_before
+                if was_dumpable > 0:
+                    _prctl(_PR_SET_DUMPABLE, was_dumpable)
+                with contextlib.suppress(ValueError, OSError):
+                    resource.setrlimit(resource.RLIMIT_CORE, (soft, hard))
 
 
 def stop_with_parent() -> None:
@@ -294,8 +359,9 @@ def add_secret_argument(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def secret_from_arguments(args: argparse.Namespace) -> bytes | None:
-    """The secret ``--secret-fd`` names (read once, the descriptor closed), or None."""
+def secret_from_arguments(args: argparse.Namespace) -> RunKey | None:
+    """The secret ``--secret-fd`` names (read once, the descriptor closed), or None. The
+    caller wipes it when its run ends."""
     from ballbeam.errors import BusError
     from ballbeam.protocol.secoc import read_secret
 

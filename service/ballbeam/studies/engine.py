@@ -158,6 +158,14 @@ def run_sweep(
     )
 
 
+def stored_points(spec: SweepSpec, output: Path) -> tuple[int, int]:
+    """How many of the spec's points ``output`` holds a record of (run or failed: a rerun skips
+    them), and how many points the spec has."""
+    store = ResultStore(output)
+    pairs = tasks_for(spec, spec.points(), output)
+    return sum(store.path(task.point_id).is_file() for task, _ in pairs), len(pairs)
+
+
 def results_table(
     spec: SweepSpec, pairs: list[tuple[PointTask, Point]], records: dict[str, dict[str, Any]]
 ) -> Any:

@@ -35,6 +35,8 @@ the same scenario distributions, other noise seeds. ::
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 import os
 import re
@@ -46,7 +48,13 @@ from typing import Any
 
 import numpy as np
 
-from ballbeam.config import load_config, read_config_data, read_toml_file, resolve_config_path
+from ballbeam.config import (
+    load_config,
+    read_config_data,
+    read_toml_file,
+    resolve_config_path,
+    shipped_configs,
+)
 from ballbeam.errors import BallbeamError, ConfigError
 from ballbeam.files import replace_file
 from ballbeam.studies.points import PointOutcome, PointTask, evaluate_batch, warm_up
@@ -62,6 +70,9 @@ TUNE_KEYS = {
 # finite (a sampler cannot rank infinities).
 PENALTY = 100.0
 CONSTRAINT_TOLERANCE = 1e-9  # a start on the 52° limit reads 52.000000000000007°
+STUDY_FILE = "study.db"  # the Optuna study in the output directory: what a stopped tuning kept
+STUDY_NAME = "ballbeam-tune"
+_SCORE_ATTRS = frozenset({"violations", "failed", "default"})  # a trial's attrs, not its summary
 _INDEXED = re.compile(r"^(?P<key>[a-z_.]+)\[(?P<index>\d+)\]$")
 
 
@@ -331,6 +342,80 @@ class TuneOutcome:
     holdout_improvement: float  # 1 − tuned worst / default worst on the held-out set
 
 
+def spec_fingerprint(spec: TuneSpec) -> str:
+    """What makes two tunings one study: the space, the objective, the bounds and the tuning
+    set's runs (not the trial count, the parallelism or the held-out set)."""
+    base_data = read_config_data(spec.base) if spec.base is not None else {}
+    content = {
+        "space": [[p.name, p.low, p.high, p.log] for p in spec.space],
+        "metric": spec.metric,
+        "objective": spec.objective,
+        "constraints": spec.constraints,
+        "train": sorted(task.point_id for task in _set_tasks(spec, spec.train, {})),
+        "base": base_data,
+        "fixed": list(spec.fixed),
+    }
+    return hashlib.sha256(json.dumps(content, sort_keys=True).encode()).hexdigest()[:20]
+
+
+def _open_study(spec: TuneSpec, output: Path) -> Any:
+    """The study in ``output/study.db``: new, or the one a tuning of the same spec left there
+    (an interrupted one resumes). SQLite, Optuna's RDB storage: each told trial is one
+    committed transaction, so a kill at any moment loses at most the trials in flight, and
+    no lock file outlives a killed process (Optuna's journal file storage leaves one to
+    expire). A trial left running by an interrupted tuning is marked failed."""
+    import optuna
+    from optuna.trial import TrialState
+
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    try:
+        output.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise ConfigError(f"cannot create the tuning directory {output}: {error}") from error
+    sampler = optuna.samplers.TPESampler(
+        seed=spec.sampler_seed,
+        n_startup_trials=min(10, max(spec.trials // 4, 1)),
+    )
+    path = (output / STUDY_FILE).resolve()
+    try:
+        storage = optuna.storages.RDBStorage(f"sqlite:///{path}")
+        study = optuna.create_study(study_name=STUDY_NAME, storage=storage,
+                                    direction="minimize", sampler=sampler, load_if_exists=True)
+    except Exception as error:  # sqlalchemy's and Optuna's own errors: not a study we can use
+        raise ConfigError(f"cannot open the tuning study {path}: {error}") from error
+    fingerprint = spec_fingerprint(spec)
+    stored = study.user_attrs.get("spec")
+    if stored is None:
+        study.set_user_attr("spec", fingerprint)
+    elif stored != fingerprint:
+        raise ConfigError(
+            f"{path} holds the trials of another tuning (its space, objective, bounds or "
+            "tuning set differ): name another --output, or delete it to start afresh"
+        )
+    for trial in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
+        study.tell(trial.number, state=TrialState.FAIL)  # its runs were lost with its process
+    return study
+
+
+def completed_trials(output: Path) -> int:
+    """How many trials the study in ``output`` holds whole (0 if there is none)."""
+    path = output / STUDY_FILE
+    if not path.is_file():
+        return 0
+    import optuna
+    from optuna.trial import TrialState
+
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    study = optuna.load_study(study_name=STUDY_NAME, storage=f"sqlite:///{path.resolve()}")
+    return len(study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)))
+
+
+def _stored_score(trial: Any) -> SetScore:
+    attrs = trial.user_attrs
+    summary = {key: value for key, value in attrs.items() if key not in _SCORE_ATTRS}
+    return SetScore(float(trial.value), tuple(attrs["violations"]), summary, int(attrs["failed"]))
+
+
 def run_tune(
     spec: TuneSpec,
     output: Path,
@@ -338,24 +423,29 @@ def run_tune(
     progress: bool = True,
     on_trial: Callable[[int, SetScore], None] | None = None,
 ) -> TuneOutcome:
+    """Tune until the study in ``output`` holds ``spec.trials`` whole trials (those a stopped
+    tuning left there count), then judge the best on the held-out set."""
     import optuna
     from distributed import as_completed
+    from optuna.trial import TrialState
     from tqdm import tqdm
 
     from ballbeam.studies.cluster import worker_count
 
-    optuna.logging.set_verbosity(optuna.logging.WARNING)
-    output.mkdir(parents=True, exist_ok=True)
+    study = _open_study(spec, output)
     workers = max(worker_count(client), 1)
     client.run(warm_up)
     in_flight_max = spec.parallel or 2 * workers
-    sampler = optuna.samplers.TPESampler(
-        seed=spec.sampler_seed,
-        n_startup_trials=min(10, max(spec.trials // 4, 1)),
-    )
-    study = optuna.create_study(direction="minimize", sampler=sampler)
     default_params = defaults(spec)
-    study.enqueue_trial(default_params)
+    complete = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
+    scores: dict[int, SetScore] = {trial.number: _stored_score(trial) for trial in complete}
+    done = len(scores)
+    default_done = any(trial.user_attrs.get("default") for trial in complete)
+    waiting = study.get_trials(deepcopy=False, states=(TrialState.WAITING,))
+    if not default_done and not any(trial.user_attrs.get("default") for trial in waiting):
+        # The base's own values: the first trial asked (again, if a stop lost it).
+        study.enqueue_trial(default_params, user_attrs={"default": True})
+    to_ask = max(spec.trials - done, 0 if default_done else 1)
     distributions: dict[str, optuna.distributions.BaseDistribution] = {
         parameter.name: optuna.distributions.FloatDistribution(
             parameter.low, parameter.high, log=parameter.log
@@ -365,7 +455,6 @@ def run_tune(
     pending: dict[int, tuple[Any, list[PointTask], dict[str, PointOutcome], int]] = {}
     futures = as_completed()
     owner: dict[Any, int] = {}
-    scores: dict[int, SetScore] = {}
     asked = 0
 
     def ask() -> None:
@@ -382,11 +471,11 @@ def run_tune(
             owner[future] = trial.number
             futures.add(future)
 
-    for _ in range(min(in_flight_max, spec.trials)):
+    for _ in range(min(in_flight_max, to_ask)):
         ask()
-    with tqdm(total=spec.trials, unit="trial", desc=spec.path.stem, file=sys.stderr,
-              disable=not progress) as bar:
-        for future in futures:
+    with tqdm(total=max(spec.trials, done), initial=done, unit="trial", desc=spec.path.stem,
+              file=sys.stderr, disable=not progress or not to_ask) as bar:
+        for future in futures if to_ask else ():
             number = owner.pop(future)
             trial, tasks, outcomes, remaining = pending[number]
             try:
@@ -409,24 +498,29 @@ def run_tune(
                 trial.set_constraint(f"bound_{index}", violation - CONSTRAINT_TOLERANCE)
             for name, value in result.summary.items():
                 trial.set_user_attr(name, value)
+            # What the score is made of, so that a resumed tuning knows it without the runs.
+            trial.set_user_attr("violations", list(result.violations))
+            trial.set_user_attr("failed", result.failed)
             study.tell(trial, result.objective)
             if on_trial is not None:
                 on_trial(number, result)
             so_far = min((s.objective for s in scores.values() if s.feasible), default=math.nan)
             bar.set_postfix_str(f"best {spec.objective} {spec.metric} {so_far:.4g}")
             bar.update()
-            if asked < spec.trials:
+            if asked < to_ask:
                 ask()
-    feasible = [trial for trial in study.trials if scores[trial.number].feasible]
+    complete = study.get_trials(states=(TrialState.COMPLETE,))
+    default_number = next(trial.number for trial in complete if trial.user_attrs.get("default"))
+    feasible = [trial for trial in complete if scores[trial.number].feasible]
     if not feasible:
         raise TuningError(
             f"no trial kept every bound of tune.constraints (the default's: "
-            f"{scores[0].summary}); widen the space or the bounds"
+            f"{scores[default_number].summary}); widen the space or the bounds"
         )
     best = min(feasible, key=lambda trial: (scores[trial.number].objective, trial.number))
     best_params = {name: float(value) for name, value in best.params.items()}
     tuned_path = write_tuned_config(spec, output / "tuned.toml", best_params, scores[best.number],
-                                    scores[0], best.number)
+                                    scores[default_number], best.number)
     import pandas as pd
 
     table = []
@@ -444,13 +538,15 @@ def run_tune(
     holdout_frame = pd.DataFrame(holdout_rows)
     replace_file(output / "holdout.parquet",
                  lambda stream: holdout_frame.to_parquet(stream, index=False))
-    for label, trial_number in (("default", 0), ("tuned", best.number)):
+    for label, trial_number in (("default", default_number), ("tuned", best.number)):
         for set_name, result in (("tuning", scores[trial_number]), ("held-out", holdout[label])):
             table.append({"set": set_name, "config": label, "feasible": result.feasible,
                           "failed": result.failed, **result.summary})
     worst = f"{spec.metric} worst"
     improvement = 1.0 - holdout["tuned"].summary[worst] / holdout["default"].summary[worst]
     trials_frame = study.trials_dataframe()
+    # The whole trials (a stopped tuning's lost ones, failed, stay in the study only).
+    trials_frame = trials_frame[trials_frame["state"] == "COMPLETE"].reset_index(drop=True)
     replace_file(output / "trials.parquet",
                  lambda stream: trials_frame.to_parquet(stream, index=False))
     replace_file(output / "before_after.md", (markdown_table(table) + "\n").encode("utf-8"))
@@ -472,11 +568,7 @@ def write_tuned_config(
 ) -> Path:
     """A config that ``extends`` the base and sets the tuned keys (loadable by every command)."""
     keys = overrides_for(spec, params)
-    base = spec.base if spec.base is not None else resolve_config_path("paper")
-    try:
-        extends = os.path.relpath(base, path.parent.resolve())
-    except ValueError:  # another drive: an absolute path
-        extends = str(base)
+    extends = extends_name(spec.base, path.parent)
     worst = f"{spec.metric} worst"
     lines = [
         f"# Tuned by `ballbeam tune {spec.path.name}` (trial {trial_number} of {spec.trials}): "
@@ -494,6 +586,23 @@ def write_tuned_config(
     replace_file(path, ("\n".join(lines) + "\n").encode("utf-8"))
     load_config(path)  # what was written is a valid config
     return path
+
+
+def extends_name(base: Path | None, directory: Path) -> str:
+    """How a config written in ``directory`` names its base in ``extends``: a shipped config
+    by its name (``"paper"``: found in whichever install reads it, where a path into this
+    install's package would break when it moves or is upgraded), any other file by its path
+    relative to ``directory``."""
+    if base is None:
+        return "paper"  # what a config without a file is: the paper's set-up
+    resolved = base.resolve()
+    shipped = shipped_configs().resolve()
+    if resolved.is_relative_to(shipped):
+        return resolved.relative_to(shipped).with_suffix("").as_posix()
+    try:
+        return os.path.relpath(resolved, directory.resolve())
+    except ValueError:  # another drive: an absolute path
+        return str(resolved)
 
 
 def markdown_table(rows: list[dict[str, Any]]) -> str:

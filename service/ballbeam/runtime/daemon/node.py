@@ -17,7 +17,7 @@ from ballbeam.logs import design_record
 from ballbeam.logs.recorder import Recorder
 from ballbeam.logs.recording import RunRecording
 from ballbeam.protocol.frames import FrameContract
-from ballbeam.protocol.secoc import FrameAuthenticator
+from ballbeam.protocol.secoc import FrameAuthenticator, RunKey
 from ballbeam.runtime.bus import open_bus
 from ballbeam.runtime.daemon.loop import ControllerDaemon
 from ballbeam.runtime.owner_lock import EMULATOR_SLOT, OwnerLock
@@ -87,7 +87,7 @@ def run_daemon(
     config_path: str | None,
     *,
     live_port: int | None = None,
-    secret: bytes | None = None,
+    secret: RunKey | bytes | None = None,
     log_stream: BinaryIO | None = None,
 ) -> str:
     """Plan, synthesise, open the recorder and the bus, run, finish the file. Returns how the
@@ -115,7 +115,7 @@ def _run_recorded(
     log_path: Path,
     config_path: str | None,
     live: LiveView | None,
-    secret: bytes | None,
+    secret: RunKey | bytes | None,
     log_stream: BinaryIO | None,
 ) -> str:
     design = controller_design(config)  # before touching the bus: a bad config fails fast
