@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import secrets
 import resource
 import signal
 import subprocess
@@ -191,8 +192,10 @@ def test_the_daemon_wipes_its_key_when_its_run_ends(
                         lambda: forbidden.append(True))
     secret = os.urandom(SECRET_BYTES)
     fd = secret_pipe(secret)
-    code = main(["daemon", "--set", "bus.interface='virtual'",
-                 "--set", f"bus.channel='core-test-{os.getpid()}'",
+    # a private interface-local group of its own: nothing answers on it
+    group = f"ff11:7079:7468:6f6e:{os.getpid() & 0xFFFF:x}:{secrets.randbits(16):x}::1"
+    code = main(["daemon", "--set", "bus.interface='udp_multicast'",
+                 "--set", f"bus.channel='{group}'",
                  "--set", "controller.start_timeout_s=0.2", "--set", "run.mode='lockstep'",
                  "--secret-fd", str(fd), "--log", str(tmp_path / "run.mcap")])
     assert code == 3  # plant lost: no emulator
