@@ -203,11 +203,10 @@ class ControllerDesign:
         for array in (self.gains, self.offset_v, self.final_gain, self.reference_states,
                       self.reference_input_v):
             array.setflags(write=False)
-        object.__setattr__(self, "_gain_rows", tuple(map(tuple, self.gains.tolist())))
+        object.__setattr__(self, "_gain_rows", _row_tuples(self.gains))
         object.__setattr__(self, "_offsets", tuple(self.offset_v.tolist()))
         object.__setattr__(self, "_final_row", as_row4(self.final_gain))
-        references = tuple(map(tuple, self.reference_states.tolist()))
-        object.__setattr__(self, "_reference_rows", references)
+        object.__setattr__(self, "_reference_rows", _row_tuples(self.reference_states))
         object.__setattr__(self, "_reference_inputs", tuple(self.reference_input_v.tolist()))
         (a00, a01, _, _), (a10, a11, _, _) = self.observer.Ad[0], self.observer.Ad[1]
         servo = (a00, a01, a10, a11, self.observer.Bd[0], self.observer.Bd[1])
@@ -334,6 +333,24 @@ class ControllerDesign:
         if sent_v < -deadzone:
             return sent_v + deadzone
         return 0.0
+
+
+def _row_tuples(array: np.ndarray) -> tuple[Row4, ...]:
+    """The rows of ``array`` (N, 4) as tuples of floats, one tuple shared by each run of rows
+    that are equal bit for bit (the stationary gains are one row N times, the reference is
+    rest for most of the horizon): building N tuples of fresh floats was most of a design's
+    cost."""
+    n = array.shape[0]
+    if n == 0:
+        return ()
+    bits = np.ascontiguousarray(array, dtype=np.float64).view(np.int64)
+    starts = np.flatnonzero(np.any(bits[1:] != bits[:-1], axis=1)) + 1
+    bounds = [0, *starts.tolist(), n]
+    rows = [tuple(row) for row in array[bounds[:-1]].tolist()]
+    if len(rows) == n:
+        return tuple(rows)
+    which = np.repeat(np.arange(len(rows)), np.diff(bounds)).tolist()
+    return tuple(map(rows.__getitem__, which))
 
 
 class ControllerState(NamedTuple):
