@@ -117,16 +117,43 @@ def make_plan(config: Config) -> Plan:
         return plan_rate_limited(
             constants, theta_max_rad, config.plan.servo_rate_limit_rad_s, start
         )
-    from ballbeam.core.planning.time_optimal import plan_time_optimal_from_outside
-
     # The margin keeps the path off the limit from every start: one on the limit (the paper's
     # −52°) first leaves it at full voltage (the tracker needs the room there too).
-    return plan_time_optimal_from_outside(
-        design_model(config),
-        start,
-        voltage_limit_v=config.limits.voltage_v - config.plan.voltage_margin_v,
-        theta_max_rad=theta_max_rad - math.radians(config.plan.theta_margin_deg),
-        step_s=config.plan.step_s or config.controller.period_s,
+    return _time_optimal_plan(
+        constants,
+        as_row4(start),
+        config.limits.voltage_v - config.plan.voltage_margin_v,
+        theta_max_rad - math.radians(config.plan.theta_margin_deg),
+        config.plan.step_s or config.controller.period_s,
+        from_outside=True,
+    )
+
+
+@functools.lru_cache(maxsize=16)
+def _time_optimal_plan(
+    constants: PhysicalConstants,
+    start: Row4,
+    voltage_limit_v: float,
+    theta_max_rad: float,
+    step_s: float,
+    *,
+    from_outside: bool,
+) -> Plan:
+    """The time-optimal planner (its LPs are most of a design's cost), kept per process: the
+    same start and limits come back often (T* beside every offline run, a sweep's points, the
+    tests). The plan is frozen, its arrays read-only."""
+    from ballbeam.core.planning.time_optimal import (
+        plan_time_optimal,
+        plan_time_optimal_from_outside,
+    )
+
+    planner = plan_time_optimal_from_outside if from_outside else plan_time_optimal
+    return planner(
+        LinearModel.from_constants(constants),
+        np.array(start),
+        voltage_limit_v=voltage_limit_v,
+        theta_max_rad=theta_max_rad,
+        step_s=step_s,
     )
 
 
@@ -135,15 +162,14 @@ def minimum_time_s(config: Config) -> float | None:
     at the start (a step schedule's first) under the full voltage and angle limits (the
     time-optimal planner with zero margins); None where no such path exists (a start beyond
     the limit)."""
-    from ballbeam.core.planning.time_optimal import plan_time_optimal
-
     try:
-        plan = plan_time_optimal(
-            design_model(config),
-            planned_start(config, make_task(config).target_at(0.0)),
-            voltage_limit_v=config.limits.voltage_v,
-            theta_max_rad=config.limits.theta_rad,
-            step_s=config.controller.period_s,
+        plan = _time_optimal_plan(
+            physical_constants(config),
+            as_row4(planned_start(config, make_task(config).target_at(0.0))),
+            config.limits.voltage_v,
+            config.limits.theta_rad,
+            config.controller.period_s,
+            from_outside=False,
         )
     except PlanningError:
         return None
