@@ -19,13 +19,6 @@ from ballbeam.core.tracker import stationary_gain
 from ballbeam.logs import design_record
 
 
-def _clear_caches() -> None:
-    for name in dir(assembly):
-        cache_clear = getattr(getattr(assembly, name), "cache_clear", None)
-        if cache_clear is not None:
-            cache_clear()
-
-
 def _arrays(design: ControllerDesign) -> dict[str, bytes]:
     """Every recorded array, as its bytes (bit for bit), read back from the record itself."""
     with np.load(io.BytesIO(design_record.encode_design(design))) as archive:
@@ -34,7 +27,7 @@ def _arrays(design: ControllerDesign) -> dict[str, bytes]:
 
 def test_a_design_made_again_is_the_fresh_one_bit_for_bit() -> None:
     config = load_config("paper", [])
-    _clear_caches()
+    assembly.clear_design_caches()
     fresh = _arrays(assembly.controller_design(config))
     again = assembly.controller_design(config)
     assert _arrays(again) == fresh
@@ -73,7 +66,7 @@ def test_kept_pieces_follow_the_config_they_were_made_for() -> None:
     # The plan's margin changed: a plan of its own, and it is the fresh process's plan.
     assert design.plan_duration_s != assembly.controller_design(base).plan_duration_s
     again = _arrays(design)
-    _clear_caches()
+    assembly.clear_design_caches()
     assert _arrays(assembly.controller_design(changed)) == again
 
 
