@@ -94,14 +94,14 @@ def test_the_lookahead_is_what_the_law_sends_when_no_measurement_comes(
 def test_it_covers_the_loops_recent_lateness_and_a_floor(design: ControllerDesign) -> None:
     state = starting_state(design)
     assert lookahead_count(design, state) == LOOKAHEAD_FLOOR
-    late = dataclasses.replace(state, lateness=LatenessWatch(worst_ns=5_500_000))
+    late = state._replace(lateness=LatenessWatch(worst_ns=5_500_000))
     assert lookahead_count(design, late) == LOOKAHEAD_FLOOR + 6
-    stalled = dataclasses.replace(state, lateness=LatenessWatch(worst_ns=80_000_000))
+    stalled = state._replace(lateness=LatenessWatch(worst_ns=80_000_000))
     assert lookahead_count(design, stalled) == 20
     assert lookahead_voltages(dataclasses.replace(design, lookahead_periods=0), state) == ()
     # After the plan, at rest (the sensors read 0): the commands are held as before, no cost.
     assert design.rest_gains is not None
-    at_rest = dataclasses.replace(state, cycle=design.rest_gains.from_cycle - 1)
+    at_rest = state._replace(cycle=design.rest_gains.from_cycle - 1)
     while at_rest.cycle < design.rest_gains.from_cycle + 1000:
         at_rest, _ = control_cycle(design, at_rest, SensorReading(0, 0))
     assert lookahead_count(design, at_rest) == 0 and lookahead_voltages(design, at_rest) == ()
@@ -158,7 +158,7 @@ def test_a_stalled_loop_near_the_limit_leaves_the_plant_inside_52_degrees(
         )
         noise_m = next_noise(params, noise_m, rng)
         if 190 <= cycle <= 320 or 1050 <= cycle <= 1150:
-            stalled = dataclasses.replace(state, lateness=LatenessWatch(worst_ns=16_000_000))
+            stalled = state._replace(lateness=LatenessWatch(worst_ns=16_000_000))
             ahead = lookahead_voltages(design, stalled)
             assert len(ahead) == 20
             ahead_peaks.append(peak_deg(true_state, ahead))

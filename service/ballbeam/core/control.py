@@ -10,6 +10,7 @@ the bit on every machine, so a recorded design replays identically wherever it i
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -185,6 +186,7 @@ class ControllerDesign:
         init=False, repr=False, compare=False
     )
     _target_y: float = field(init=False, repr=False, compare=False)  # target_m, measured
+    _n_steps: int = field(init=False, repr=False, compare=False)  # read several times a cycle
 
     def __post_init__(self) -> None:
         N = self.offset_v.shape[0]
@@ -201,20 +203,20 @@ class ControllerDesign:
         for array in (self.gains, self.offset_v, self.final_gain, self.reference_states,
                       self.reference_input_v):
             array.setflags(write=False)
-        object.__setattr__(self, "_gain_rows", tuple(map(tuple, self.gains.tolist())))
+        object.__setattr__(self, "_gain_rows", _row_tuples(self.gains))
         object.__setattr__(self, "_offsets", tuple(self.offset_v.tolist()))
         object.__setattr__(self, "_final_row", as_row4(self.final_gain))
-        references = tuple(map(tuple, self.reference_states.tolist()))
-        object.__setattr__(self, "_reference_rows", references)
+        object.__setattr__(self, "_reference_rows", _row_tuples(self.reference_states))
         object.__setattr__(self, "_reference_inputs", tuple(self.reference_input_v.tolist()))
         (a00, a01, _, _), (a10, a11, _, _) = self.observer.Ad[0], self.observer.Ad[1]
         servo = (a00, a01, a10, a11, self.observer.Bd[0], self.observer.Bd[1])
         object.__setattr__(self, "servo_rows", servo)
         object.__setattr__(self, "_target_y", self.target_m * self.observer.C[1][3])
+        object.__setattr__(self, "_n_steps", N)
 
     @property
     def n_steps(self) -> int:
-        return len(self._offsets)
+        return self._n_steps
 
     def measurement(self, reading: SensorReading) -> Row2:
         """y = (57·θ, 100·x) from raw counts."""
@@ -239,7 +241,7 @@ class ControllerDesign:
     def reference(self, position: float) -> tuple[Row4, float]:
         """x_d and u_d at path position ``position`` (cycles, interpolated between rows)."""
         index = int(position)
-        n = self.n_steps
+        n = self._n_steps
         if index >= n:
             return (0.0, 0.0, 0.0, 0.0), 0.0
         rows, inputs = self._reference_rows, self._reference_inputs
@@ -267,7 +269,8 @@ class ControllerDesign:
         the pace squared). ``reference``: x_d and u_d at ``position``, if already at hand."""
         x0, x1, x2, x3 = estimate
         cycle = int(position)
-        if cycle + 1 < self.n_steps:
+        n_steps = self._n_steps
+        if cycle + 1 < n_steps:
             f = position - cycle
             o0, o1 = self._offsets[cycle], self._offsets[cycle + 1]
             offset = o0 + f * (o1 - o0)
@@ -275,7 +278,7 @@ class ControllerDesign:
             k0, k1, k2, k3 = a0 + f * (b0 - a0), a1 + f * (b1 - a1), a2 + f * (b2 - a2), (
                 a3 + f * (b3 - a3)
             )
-        elif cycle < self.n_steps:
+        elif cycle < n_steps:
             offset = self._offsets[cycle]
             k0, k1, k2, k3 = self._gain_rows[cycle]
         else:
@@ -294,7 +297,7 @@ class ControllerDesign:
                 catch_theta, catch_rate = rest.catch_terms(cycle)
                 k0, k1 = k0 + catch_theta, k1 + catch_rate
         demand = offset - (k0 * x0 + k1 * x1 + k2 * x2 + k3 * x3)
-        if pace == 1.0 or cycle >= self.n_steps or self.adaptation is None:
+        if pace == 1.0 or cycle >= n_steps or self.adaptation is None:
             return demand
         (_, theta_rate, ball_rate, _), input_v = (
             reference if reference is not None else self.reference(position)
@@ -332,8 +335,28 @@ class ControllerDesign:
         return 0.0
 
 
-@dataclass(frozen=True)
-class ControllerState:
+def _row_tuples(array: np.ndarray) -> tuple[Row4, ...]:
+    """The rows of ``array`` (N, 4) as tuples of floats, one tuple shared by each run of rows
+    that are equal bit for bit (the stationary gains are one row N times, the reference is
+    rest for most of the horizon): building N tuples of fresh floats was most of a design's
+    cost."""
+    n = array.shape[0]
+    if n == 0:
+        return ()
+    bits = np.ascontiguousarray(array, dtype=np.float64).view(np.int64)
+    starts = np.flatnonzero(np.any(bits[1:] != bits[:-1], axis=1)) + 1
+    bounds = [0, *starts.tolist(), n]
+    rows = [tuple(row) for row in array[bounds[:-1]].tolist()]
+    if len(rows) == n:
+        return tuple(rows)
+    which = np.repeat(np.arange(len(rows)), np.diff(bounds)).tolist()
+    return tuple(map(rows.__getitem__, which))
+
+
+class ControllerState(NamedTuple):
+    """What the law carries from one cycle to the next. Immutable; a named tuple, not a frozen
+    dataclass: one is built every cycle, and a tuple is built in a quarter of the time."""
+
     cycle: int = 0
     prediction: Row4 | None = None  # x̄[k | k−1]; None before the first measurement
     path_position: float = 0.0  # τ: where on the reference (in cycles) this cycle tracks
@@ -354,8 +377,9 @@ def starting_state(design: ControllerDesign) -> ControllerState:
     return ControllerState(lateness=starting_watch(design.guard))
 
 
-@dataclass(frozen=True)
-class CycleOutput:
+class CycleOutput(NamedTuple):
+    """One cycle's result (a named tuple: one is built every cycle, see ControllerState)."""
+
     voltage_v: float  # clamped command sent to the plant
     requested_v: float  # the tracker's unclamped demand
     estimate: Row4  # x̂[k | k], its position in x (not from the target)

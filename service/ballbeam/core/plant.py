@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -72,9 +73,9 @@ def lookahead_as_received(voltage_v: float) -> float:
     return round(voltage_v * 1000.0) / 1000.0
 
 
-@dataclass(frozen=True)
-class SensorReading:
-    """What the sensor frame carries: raw integer counts."""
+class SensorReading(NamedTuple):
+    """What the sensor frame carries: raw integer counts (a named tuple: one is built every
+    cycle, several times faster than a frozen dataclass)."""
 
     angle_counts: int
     position_counts: int

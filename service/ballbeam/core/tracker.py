@@ -59,7 +59,7 @@ import scipy.linalg
 import scipy.signal
 
 from ballbeam.core.model import LinearModel, zoh_generator
-from ballbeam.core.planning.plan import Plan
+from ballbeam.core.planning.plan import Plan, PlanSamples
 from ballbeam.errors import ConfigError
 
 Terminal = Literal["stationary", "zero"]
@@ -303,6 +303,45 @@ def _dare(cost: SampledCost) -> np.ndarray:
     return result
 
 
+@dataclass(frozen=True)
+class StationaryTracker:
+    """The part of the sampled-data tracker no plan changes (the stationary problem, S_N = P):
+    the period's cost, the DARE solution P (4, 4), the constant gain K_P (4,) with its
+    ``G_P = Rd + BdᵀP Bd``, the closed loop Φ = Ad − Bd K_P (4, 4) and the complex Schur form
+    ``Φᵀ = U T Uᴴ`` (schur_t = T, schur_u = U, (4, 4)) the feedforward recursion runs in.
+    Read-only arrays: one may serve many syntheses (the assembly keeps one per model, weights
+    and period)."""
+
+    cost: SampledCost
+    P: np.ndarray
+    K_P: np.ndarray
+    G_P: float
+    Phi: np.ndarray
+    schur_t: np.ndarray
+    schur_u: np.ndarray
+
+
+def stationary_tracker(
+    model: LinearModel, *, Q: np.ndarray, R: np.ndarray, period_s: float
+) -> StationaryTracker:
+    """The plan-independent part of :func:`discrete_tracker` for these weights and period."""
+    n, m = model.B.shape
+    Q, R = _check_weights(Q, R, n, m)
+    cost = sampled_cost(model, Q, R, period_s)
+    Ad, bd = cost.Ad, cost.Bd[:, 0]
+    nd = cost.Nd[:, 0]
+    rd = float(cost.Rd[0, 0])
+    P = _dare(cost)
+    Pb = P @ bd
+    G_P = rd + bd @ Pb
+    K_P = (Pb @ Ad + nd) / G_P
+    Phi = Ad - np.outer(bd, K_P)
+    T, U = scipy.linalg.schur(Phi.T, output="complex")
+    for array in (P, K_P, Phi, T, U, *vars(cost).values()):
+        array.setflags(write=False)
+    return StationaryTracker(cost, P, K_P, float(G_P), Phi, T, U)
+
+
 def discrete_tracker(
     model: LinearModel,
     reference_states: np.ndarray,
@@ -313,14 +352,15 @@ def discrete_tracker(
     period_s: float,
     terminal: Terminal = "stationary",
     input_reference: InputReference = "feedforward",
+    stationary: StationaryTracker | None = None,
 ) -> DiscreteTracker:
     """Synthesise the sampled-data tracker from references at the sample instants.
 
     reference_states (N + 1, 4): r_k = x_d(k h) for k = 0..N (r_N enters the terminal cost);
-    reference_input_v (N,): ū_k = u_d(k h).
+    reference_input_v (N,): ū_k = u_d(k h). ``stationary``: ``stationary_tracker(model, Q=Q,
+    R=R, period_s=period_s)`` if already at hand (computed here otherwise).
     """
     n, m = model.B.shape
-    Q, R = _check_weights(Q, R, n, m)
     _check_choices(terminal, input_reference)
     r = np.asarray(reference_states, dtype=float)
     u_bar = np.asarray(reference_input_v, dtype=float)
@@ -330,11 +370,13 @@ def discrete_tracker(
             f"references must be states (N + 1, {n}) and inputs (N,) with N >= 1 for a "
             f"single-input model, got {r.shape} and {u_bar.shape}"
         )
-    cost = sampled_cost(model, Q, R, period_s)
+    if stationary is None:
+        stationary = stationary_tracker(model, Q=Q, R=R, period_s=period_s)
+    cost = stationary.cost
     Ad, bd = cost.Ad, cost.Bd[:, 0]
     nd = cost.Nd[:, 0]
     rd, rh = float(cost.Rd[0, 0]), float(cost.Rh[0, 0])
-    P = _dare(cost)
+    P, K_P, G_P, Phi = stationary.P, stationary.K_P, stationary.G_P, stationary.Phi
 
     # Stage linear terms a_k (N, 4) and b_k (N,).
     u_ref = u_bar if input_reference == "feedforward" else np.zeros(N)
@@ -342,11 +384,9 @@ def discrete_tracker(
     b = _rows(r[:N], nd[:, None])[:, 0] + (rd - rh) * u_bar + rh * u_ref
 
     # The stationary problem (S_N = P): constant gain, LTI feedforward recursion.
-    Pb = P @ bd
-    G_P = rd + bd @ Pb
-    K_P = (Pb @ Ad + nd) / G_P
-    Phi = Ad - np.outer(bd, K_P)
-    v_P = _backward_lti(Phi.T, a - np.multiply.outer(b, K_P), P @ r[N])
+    v_P = _backward_lti(
+        (stationary.schur_t, stationary.schur_u), a - np.multiply.outer(b, K_P), P @ r[N]
+    )
     if terminal == "stationary":
         S = np.broadcast_to(P, (N + 1, n, n))
         v = v_P
@@ -378,8 +418,12 @@ def synthesize_discrete(
     horizon_s: float,
     terminal: Terminal = "stationary",
     input_reference: InputReference = "feedforward",
+    stationary: StationaryTracker | None = None,
+    samples: PlanSamples | None = None,
 ) -> DiscreteTracker:
-    """The controller's tracker for ``plan``: N = round(horizon_s / period_s) periods."""
+    """The controller's tracker for ``plan``: N = round(horizon_s / period_s) periods
+    (``stationary``: as :func:`discrete_tracker`; ``samples``: ``plan.sample`` at k·period_s,
+    k = 0..N, if already at hand)."""
     if not period_s > 0.0:
         raise ConfigError(f"sampling period must be positive, got {period_s} s")
     N = round(horizon_s / period_s)
@@ -389,7 +433,12 @@ def synthesize_discrete(
         raise ConfigError(
             f"tracker horizon {horizon_s} s ends before the plan ({plan.duration_s:.4f} s)"
         )
-    samples = plan.sample(np.arange(N + 1) * period_s)
+    if samples is None:
+        samples = plan.sample(np.arange(N + 1) * period_s)
+    elif samples.input_v.shape != (N + 1,):
+        raise ConfigError(
+            f"the plan's samples must be N + 1 = {N + 1}, got {samples.input_v.shape}"
+        )
     return discrete_tracker(
         model,
         samples.states,
@@ -399,6 +448,7 @@ def synthesize_discrete(
         period_s=period_s,
         terminal=terminal,
         input_reference=input_reference,
+        stationary=stationary,
     )
 
 
@@ -415,15 +465,18 @@ def tracker_input(tracker: DiscreteTracker, k: int, state_estimate: np.ndarray) 
 # Vectorised backward recursions
 
 
-def _backward_lti(Phi_T: np.ndarray, c: np.ndarray, v_end: np.ndarray) -> np.ndarray:
-    """``v_k = Φᵀ v_{k+1} + c_k`` for k = N−1..0 from ``v_N = v_end``. c (N, n) → v (N + 1, n).
+def _backward_lti(
+    schur: tuple[np.ndarray, np.ndarray], c: np.ndarray, v_end: np.ndarray
+) -> np.ndarray:
+    """``v_k = Φᵀ v_{k+1} + c_k`` for k = N−1..0 from ``v_N = v_end``. c (N, n) → v (N + 1, n);
+    ``schur``: (T, U) of ``Φᵀ``.
 
     In the complex Schur basis ``Φᵀ = U T Uᴴ`` (T upper triangular, U unitary, so no loss of
     accuracy) the recursion decouples into scalar first-order filters solved from the last
     coordinate up, each fed by the coordinates already solved.
     """
     N, n = c.shape
-    T, U = scipy.linalg.schur(Phi_T, output="complex")
+    T, U = schur
     # Coordinates as rows (n, ·), time backward along them: each filter reads and writes one
     # contiguous row, and einsum runs several times faster along long rows than across short
     # ones. The sums run in the same order, so v is the same to the bit (the golden replay

@@ -92,29 +92,37 @@ def verify(run_log: RunLog) -> VerifyResult:
     held_v = 0.0
     commanded = False  # whether the last command was the law's (it then carried a look-ahead)
     period_ns = round(design.period_s * 1e9)
+    # The columns as Python ints and floats, converted once (the same values bit for bit):
+    # reading a NumPy element costs several times what the cycle's arithmetic does.
+    skipped_all = timing["skipped"][:count].tolist()
+    lateness_all = timing["lateness_ns"][:count].tolist()
+    recorded_all = command["voltage_v"][:count].astype(np.float64).tolist()
+    enabled_all = command["enable"][:count].tolist()
+    cycles_all = command["cycle"][:count].tolist()
+    fresh_all = sensor["fresh"][:count].tolist()
+    angle_all = sensor["angle_counts"][:count].tolist()
+    position_all = sensor["position_counts"][:count].tolist()
     for index in range(count):
-        skipped = int(timing["skipped"][index])
+        skipped = int(skipped_all[index])
         if skipped:
             lookahead_v = lookahead_voltages(design, state) if commanded else ()
             state = coast_cycles(design, state, held_v, skipped, lookahead_v)
-        recorded_v = float(command["voltage_v"][index])
-        if command["enable"][index] == 0:
+        recorded_v = recorded_all[index]
+        if enabled_all[index] == 0:
             # A fault cycle: the daemon sent 0 V and coasted its observer on it.
             replayed_v = 0.0
             state = coast_cycles(design, state, 0.0, 1)
             commanded = False
         else:
             reading = None
-            if sensor["fresh"][index]:
-                reading = SensorReading(
-                    int(sensor["angle_counts"][index]), int(sensor["position_counts"][index])
-                )
-            lateness_ns = int(timing["lateness_ns"][index]) + skipped * period_ns
+            if fresh_all[index]:
+                reading = SensorReading(int(angle_all[index]), int(position_all[index]))
+            lateness_ns = int(lateness_all[index]) + skipped * period_ns
             state, output = control_cycle(design, state, reading, lateness_ns)
             replayed_v = output.voltage_v
             commanded = True
-        if replayed_v != recorded_v or state.cycle - 1 != int(command["cycle"][index]):
-            mismatch = Mismatch(index, int(command["cycle"][index]), recorded_v, replayed_v)
+        if replayed_v != recorded_v or state.cycle - 1 != int(cycles_all[index]):
+            mismatch = Mismatch(index, int(cycles_all[index]), recorded_v, replayed_v)
             return VerifyResult(index + 1, mismatch, source, difference)
         held_v = replayed_v
     return VerifyResult(count, None, source, difference)

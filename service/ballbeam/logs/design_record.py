@@ -107,6 +107,13 @@ _GUARD_SCALARS = ("theta_limit_rad", "voltage_limit_v", "theta_per_v", "rate_per
 
 
 def encode_design(design: ControllerDesign) -> bytes:
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, **design_arrays(design))  # type: ignore[arg-type]
+    return buffer.getvalue()
+
+
+def design_arrays(design: ControllerDesign) -> dict[str, np.ndarray]:
+    """The arrays :func:`encode_design` writes, by name (little-endian float64)."""
     arrays: dict[str, np.ndarray] = {
         "format_version": np.array(FORMAT_VERSION, dtype="<i8"),
         **{name: _f8(getattr(design, name)) for name in _SCALARS},
@@ -179,9 +186,7 @@ def encode_design(design: ControllerDesign) -> bytes:
             soft = guard.soft
             arrays.update({f"soft_{name}": _f8(getattr(soft, name)) for name in _SOFT_SCALARS})
             arrays["soft_allowed_rate_rad_s"] = _f8(soft.allowed_rate_rad_s)
-    buffer = io.BytesIO()
-    np.savez_compressed(buffer, **arrays)  # type: ignore[arg-type]
-    return buffer.getvalue()
+    return arrays
 
 
 def decode_design(data: bytes, where: str) -> ControllerDesign:
@@ -319,8 +324,9 @@ def design_difference(recorded: ControllerDesign, resynthesised: ControllerDesig
     """Largest relative difference between two designs: over every array, the largest
     |a − b| relative to the largest |b| of that array (inf where shapes differ)."""
     worst = 0.0
-    for name, a in _as_arrays(recorded).items():
-        b = _as_arrays(resynthesised).get(name)
+    others = design_arrays(resynthesised)  # once: encoding a design is not free
+    for name, a in design_arrays(recorded).items():
+        b = others.get(name)
         if b is None or a.shape != b.shape:
             return float("inf")
         scale = float(np.max(np.abs(b), initial=0.0))
@@ -328,10 +334,6 @@ def design_difference(recorded: ControllerDesign, resynthesised: ControllerDesig
         if difference:
             worst = max(worst, difference / scale if scale else float("inf"))
     return worst
-
-
-def _as_arrays(design: ControllerDesign) -> dict[str, np.ndarray]:
-    return dict(np.load(io.BytesIO(encode_design(design)), allow_pickle=False))
 
 
 def _load(data: bytes, where: str) -> dict[str, np.ndarray]:
