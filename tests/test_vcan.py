@@ -150,23 +150,6 @@ def udp_reference(log_dir: Path) -> np.ndarray:
 # -- over vcan ------------------------------------------------------------------------------
 
 
-@pytest.mark.vcan
-def test_auto_takes_the_can_fd_vcan_authenticated_with_the_commands_of_udp(
-    vcan_fd: str, log_dir: Path, udp_reference: np.ndarray
-) -> None:
-    summary = _summary(_run(log_dir, wait=False))
-    assert str(summary["bus"]).startswith("socketcan:vcan"), summary["bus"]
-    assert "CAN FD vcan" in str(summary["bus_choice"])
-    run_log = read_log(Path(str(summary["log_path"])))
-    assert run_log.metadata["run"]["authenticated"] == "true"
-    assert run_log.metadata["run"]["bus"] == summary["bus"]
-    assert run_log.metadata["run"]["bus_choice"] == summary["bus_choice"]
-    received = run_log.topics["/can_rx"].values
-    assert set(np.unique(received["dlc"])) <= {24, 64}  # SecOC frames, CAN FD lengths
-    assert np.array_equal(_commands(summary), udp_reference)
-    _check_slow_machine_figures(summary)
-
-
 def _candump(interface: str) -> subprocess.Popen[str]:
     dump = subprocess.Popen(["candump", "-L", interface], stdout=subprocess.PIPE, text=True)
     time.sleep(0.5)  # it binds before the run starts
@@ -202,28 +185,37 @@ def _first_frame(interface: str, arbitration_id: int, fd: bool, timeout_s: float
 
 
 @pytest.mark.vcan
-def test_cansend_frames_on_the_fd_vcan_are_rejected_and_counted(
+def test_auto_runs_authenticated_on_the_fd_vcan_refusing_cansend_frames(
     vcan_fd: str, can_utils: None, log_dir: Path, udp_reference: np.ndarray
 ) -> None:
-    """Forged (a wrong MAC), replayed (an authentic frame heard earlier) and classic frames
-    with a wrong CRC, written by can-utils' cansend while a run goes: each is refused and
-    counted by its reason, and the run's commands are those of the clean run."""
-    run = _run(log_dir, "bus.interface='socketcan'", f"bus.channel='{vcan_fd}'",
-               "bus.authenticate=true", wait=False)
-    authentic = _first_frame(vcan_fd, SENSOR_ID, fd=True, timeout_s=240)
+    """``auto`` takes the CAN FD vcan and authenticates every frame (SecOC, CAN FD lengths);
+    forged (a wrong MAC), replayed (an authentic frame heard earlier) and classic frames with
+    a wrong CRC, written by can-utils' cansend while the run goes, are each refused and
+    counted by reason; the commands are those of the same run over udp_multicast."""
+    run = _run(log_dir, wait=False)
+    authentic = _first_frame(vcan_fd, SENSOR_ID, fd=True, timeout_s=400)
     assert len(authentic) == 24
     forged = authentic[:16] + bytes(8)  # the MAC zeroed
     wrong_crc = bytes((authentic[0] ^ 0xFF,)) + authentic[1:8]
     for _ in range(3):
         _cansend(vcan_fd, SENSOR_ID, forged, fd=True)
-        _cansend(vcan_fd, SENSOR_ID, authentic, fd=True)  # its freshness is long past
+        _cansend(vcan_fd, SENSOR_ID, authentic, fd=True)  # its freshness is past
         _cansend(vcan_fd, SENSOR_ID, wrong_crc, fd=False)
     summary = _summary(run)
-    counts = read_log(Path(str(summary["log_path"]))).metadata["summary"]
+    assert summary["bus"] == f"socketcan:{vcan_fd}", summary["bus"]
+    assert "CAN FD vcan" in str(summary["bus_choice"])
+    run_log = read_log(Path(str(summary["log_path"])))
+    assert run_log.metadata["run"]["authenticated"] == "true"
+    assert run_log.metadata["run"]["bus"] == summary["bus"]
+    assert run_log.metadata["run"]["bus_choice"] == summary["bus_choice"]
+    received = run_log.topics["/can_rx"].values
+    assert set(np.unique(received["dlc"])) <= {8, 24, 64}  # 8: cansend's classic frames
+    counts = run_log.metadata["summary"]
     assert int(counts["rejected_bad_mac"]) >= 3, counts
     assert int(counts["rejected_replayed"]) + int(counts.get("rejected_out_of_window", 0)) >= 3
     assert int(counts["rejected_unauthenticated"]) >= 3, counts
     assert np.array_equal(_commands(summary), udp_reference)
+    _check_slow_machine_figures(summary)
 
 
 @pytest.mark.vcan
@@ -269,7 +261,7 @@ def test_an_authenticated_socketcan_bus_on_a_classic_interface_is_refused(
 ) -> None:
     classic = CanInterface("vcanc0", 16, True, True)
     monkeypatch.setattr(bus_module, "can_interfaces", lambda: [classic])
-    with pytest.raises(BusError, match="classic CAN .*mtu 72"):
+    with pytest.raises(BusError, match=r"classic CAN .*mtu 72"):
         open_bus(BusSection(interface="socketcan", channel="vcanc0", authenticate=True))
 
 
