@@ -341,9 +341,13 @@ def test_auto_gives_each_run_a_vcan_of_its_own_then_the_group(
         assert (third.interface, third.channel) == ("udp_multicast", DEFAULT_BUS_GROUP)
         assert "in use by another run" in third.reason
         assert third.overrides_for(bus)[-1] == "bus.authenticate=true"
+        # A node started alone takes the first free one without holding it.
+        assert resolve_auto(bus, claim=False).interface == "udp_multicast"
         first.release()
-        assert resolve_auto(bus, claim=True).channel == "vcan0"  # free again
-        assert resolve_auto(bus, claim=False).channel == "vcan0"  # a node alone: no claim
+        assert resolve_auto(bus, claim=False).channel == "vcan0"
+        again = resolve_auto(bus, claim=True)
+        assert again.channel == "vcan0"  # free again, and held
+        again.release()
     finally:
         for choice in (first, second, third):
             choice.release()

@@ -211,19 +211,22 @@ class AutoChoice:
 
 
 def resolve_auto(bus: BusSection, claim: bool) -> AutoChoice:
-    """Where an ``auto`` bus goes: the first free CAN FD vcan interface that is up, else
-    ``udp_multicast`` on ``bus.channel``. With ``claim`` (a run launcher) the interface is
-    held for the run, and one held by another run is passed over: parallel runs each get a
-    vcan of their own while there are enough, and the interface-local group after."""
+    """Where an ``auto`` bus goes: the first CAN FD vcan interface that is up and that no
+    run holds, else ``udp_multicast`` on ``bus.channel``. With ``claim`` (a run launcher)
+    the interface is held for the run: parallel runs each get a vcan of their own while
+    there are enough, and the interface-local group after."""
     fallback = "udp_multicast"
     if not socketcan_available():
         return AutoChoice(fallback, bus.channel, "no SocketCAN in this kernel")
     vcans = [found for found in can_interfaces() if found.virtual]
     usable = [found for found in vcans if found.up and found.fd]
     for found in usable:
-        held = claim_interface(found.name) if claim else None
-        if claim and held is None:
-            continue
+        held = claim_interface(found.name)
+        if held is None:
+            continue  # another run's
+        if not claim:
+            held.close()
+            held = None
         return AutoChoice("socketcan", found.name, "a CAN FD vcan interface", held)
     if usable:
         why = f"every CAN FD vcan interface is in use by another run ({len(usable)})"
