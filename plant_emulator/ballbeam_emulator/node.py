@@ -73,27 +73,35 @@ class AnswerTimer:
     fixed wait resent about one sample in eight there and tripped the watchdog although
     nothing was lost. The wait is therefore TCP's retransmission timeout (RFC 6298): the
     smoothed round trip plus four times its variation, measured on samples answered at the
-    first try (Karn), never below ``floor_s`` (``plant.lockstep_resend_ms``)."""
+    first try (Karn), never below ``floor_s`` (``plant.lockstep_resend_ms``), doubled after
+    each resend until an answer is measured again (else a peer slower than the floor would
+    never be measured: every sample resent)."""
 
-    __slots__ = ("floor_s", "smoothed_s", "variation_s")
+    __slots__ = ("backoff", "floor_s", "smoothed_s", "variation_s")
+    MAX_BACKOFF = 64
 
     def __init__(self, floor_s: float) -> None:
         self.floor_s = floor_s
         self.smoothed_s: float | None = None
         self.variation_s = 0.0
+        self.backoff = 1
 
     def observe(self, round_trip_s: float) -> None:
+        """A sample answered at the first try, ``round_trip_s`` after it was sent."""
+        self.backoff = 1
         if self.smoothed_s is None:
             self.smoothed_s, self.variation_s = round_trip_s, round_trip_s / 2
             return
         self.variation_s += (abs(self.smoothed_s - round_trip_s) - self.variation_s) / 4
         self.smoothed_s += (round_trip_s - self.smoothed_s) / 8
 
+    def resent(self) -> None:
+        self.backoff = min(2 * self.backoff, self.MAX_BACKOFF)
+
     @property
     def timeout_s(self) -> float:
-        if self.smoothed_s is None:
-            return self.floor_s
-        return max(self.floor_s, self.smoothed_s + 4 * self.variation_s)
+        measured_s = 0.0 if self.smoothed_s is None else self.smoothed_s + 4 * self.variation_s
+        return max(self.floor_s, measured_s) * self.backoff
 
 
 @dataclass
@@ -443,6 +451,7 @@ class PlantEmulator:
             if message is None or (accepted := self._accept_command(message)) is None:
                 if time.monotonic() - last_sent >= answers.timeout_s:
                     self._resend()
+                    answers.resent()
                     last_sent, resent = time.monotonic(), True
                 continue
             command = accepted[0]  # lock-step waits for every command: no look-ahead
