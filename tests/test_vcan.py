@@ -99,6 +99,9 @@ def _run(log_dir: Path, *overrides: str, wait: bool = True) -> subprocess.Popen[
         "run", str(PAPER), "--json",
         *(item for override in (
             f"run.log_dir='{log_dir}'", "run.mode='lockstep'", f"run.duration_s={DURATION_S}",
+            # On the VM's emulated CPU the two nodes take minutes to start and may stall for
+            # seconds: timeouts meant to catch a dead peer, not a slow one.
+            "controller.start_timeout_s=900", "controller.lockstep_timeout_s=60",
             *overrides,
         ) for item in ("--set", override)),
     )
