@@ -22,7 +22,13 @@ from typing import Any
 import can
 
 from ballbeam.config import BusSection
-from ballbeam.runtime.bus import free_udp_port, isolated_group, open_bus
+from ballbeam.runtime.bus import (
+    free_udp_port,
+    isolated_group,
+    open_bus,
+    resolve_auto,
+    resolved_bus,
+)
 
 PLANT_BASE_ID = 0x600  # ids of our own, unrelated to the frame contract
 COMMAND_ID = 0x700
@@ -34,6 +40,8 @@ _CONTEXT = multiprocessing.get_context("spawn")
 
 def _private_bus(bus: BusSection) -> BusSection:
     """The same bus kind on a group and port of its own, as ``ballbeam run`` gives each run."""
+    if bus.interface == "auto":
+        bus = resolved_bus(bus, resolve_auto(bus, claim=False))
     if bus.interface != "udp_multicast":
         return bus
     return bus.model_copy(update={"channel": isolated_group(bus.channel), "port": free_udp_port()})

@@ -38,6 +38,7 @@ def one_run(
 ) -> dict[str, Any]:
     group, port = isolated_group(DEFAULT_BUS_GROUP), free_udp_port()
     overrides = [f"run.mode='{mode}'", "run.duration_s=4.0", "bus.isolate_runs=false",
+                 "bus.interface='udp_multicast'",
                  f"bus.channel='{group}'", f"bus.port={port}", f"run.log_dir='{log_dir}'"]
     flood: subprocess.Popen[str] | None = None
     if attacked:

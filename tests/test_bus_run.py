@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import json
-import math
-import os
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +13,6 @@ from ballbeam.config import load_config
 from ballbeam.evaluation.replay import verify
 from ballbeam.logs import topics
 from ballbeam.logs.reader import read_log
-from ballbeam.runtime.bus import socketcan_available
 
 from .conftest import PAPER, ballbeam
 
@@ -97,28 +94,6 @@ def test_a_bus_group_that_leaves_the_host_is_refused(tmp_path: Path) -> None:
         assert "leaves this host" in result.stderr
         assert "Traceback" not in result.stderr
     assert not list(tmp_path.glob("*.mcap"))
-
-
-def _vcan_interface() -> str | None:
-    if not socketcan_available():
-        return None
-    for name in sorted(os.listdir("/sys/class/net")):
-        if Path(f"/sys/class/net/{name}/type").read_text().strip() == "280":  # ARPHRD_CAN
-            return name
-    return None
-
-
-@pytest.mark.vcan
-@pytest.mark.skipif(
-    _vcan_interface() is None,
-    reason="no SocketCAN vcan interface on this kernel (see README to create one)",
-)
-def test_lockstep_run_over_socketcan_vcan(tmp_path: Path, offline_settle_s: float) -> None:
-    interface = _vcan_interface()
-    summary = run_json(PAPER, tmp_path, "bus.interface='socketcan'", f"bus.channel='{interface}'")
-    settle = summary["settle_time_s"]
-    assert isinstance(settle, float) and math.isfinite(settle)
-    assert abs(settle - offline_settle_s) <= SETTLE_TOLERANCE_S
 
 
 def test_lockstep_is_the_offline_run_sample_for_sample(tmp_path: Path) -> None:

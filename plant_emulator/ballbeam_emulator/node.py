@@ -64,6 +64,46 @@ STATUS_PERIOD_S = 0.1  # plant time between two snapshots of the counters
 FINAL_STATUS_GAP_S = 100e-6  # between the final snapshot's frames: udp_multicast drops bursts
 
 
+class AnswerTimer:
+    """Lock-step: how long the emulator waits for the daemon's answer to a sample before it
+    sends the sample again, and before its watchdog calls the daemon silent.
+
+    A fixed 20 ms is two orders of magnitude above a round trip on an ordinary machine, but
+    on an emulated CPU (a VM without hardware virtualisation) a round trip takes ~25 ms: a
+    fixed wait resent about one sample in eight there and tripped the watchdog although
+    nothing was lost. The wait is therefore TCP's retransmission timeout (RFC 6298): the
+    smoothed round trip plus four times its variation, measured on samples answered at the
+    first try (Karn), never below ``floor_s`` (``plant.lockstep_resend_ms``), doubled after
+    each resend until an answer is measured again (else a peer slower than the floor would
+    never be measured: every sample resent)."""
+
+    __slots__ = ("backoff", "floor_s", "smoothed_s", "variation_s")
+    MAX_BACKOFF = 64
+
+    def __init__(self, floor_s: float) -> None:
+        self.floor_s = floor_s
+        self.smoothed_s: float | None = None
+        self.variation_s = 0.0
+        self.backoff = 1
+
+    def observe(self, round_trip_s: float) -> None:
+        """A sample answered at the first try, ``round_trip_s`` after it was sent."""
+        self.backoff = 1
+        if self.smoothed_s is None:
+            self.smoothed_s, self.variation_s = round_trip_s, round_trip_s / 2
+            return
+        self.variation_s += (abs(self.smoothed_s - round_trip_s) - self.variation_s) / 4
+        self.smoothed_s += (round_trip_s - self.smoothed_s) / 8
+
+    def resent(self) -> None:
+        self.backoff = min(2 * self.backoff, self.MAX_BACKOFF)
+
+    @property
+    def timeout_s(self) -> float:
+        measured_s = 0.0 if self.smoothed_s is None else self.smoothed_s + 4 * self.variation_s
+        return max(self.floor_s, measured_s) * self.backoff
+
+
 @dataclass
 class EmulatorCounters:
     """The emulator's own counts; the fields, in order, are PLANT_STATUS_FIELDS (the frames'
@@ -329,10 +369,12 @@ class PlantEmulator:
         self._advance(due)
         return physics_ns + max(due, 0) * self.substep_ns
 
-    def _check_watchdog(self, now_ns: int) -> None:
+    def _check_watchdog(self, now_ns: int, floor_ns: int = 0) -> None:
+        """Zero the drive once no valid command came for ``plant.watchdog_ms`` (at least
+        ``floor_ns``)."""
         if self.last_command_ns is None or self.watchdog_zeroed:
             return
-        if now_ns - self.last_command_ns > self.watchdog_ns:
+        if now_ns - self.last_command_ns > max(self.watchdog_ns, floor_ns):
             self.voltage_v = 0.0
             self.lookahead_v = ()
             self.watchdog_zeroed = True
@@ -393,23 +435,28 @@ class PlantEmulator:
 
     # -- modes --------------------------------------------------------------------------------
     def run_lockstep(self, stop: StopFlag) -> None:
-        resend_s = self.config.plant.lockstep_resend_ms * 1e-3
+        answers = AnswerTimer(self.config.plant.lockstep_resend_ms * 1e-3)
         poll_s = self.config.run.lockstep_poll_us * 1e-6
         self._count_periods(0)
         self._send_sample()
-        last_sent = time.monotonic()
+        last_sent = first_sent = time.monotonic()
+        resent = False  # this sample: its answer then says nothing of the round trip (Karn)
         while not stop.is_set():
-            message = self._recv(resend_s, poll_s)
+            wait_s = max(0.0, last_sent + answers.timeout_s - time.monotonic())
+            message = self._recv(wait_s, poll_s)
             now_ns = time.monotonic_ns()
             self._check_peer(stop)
             if stop.is_set():
                 self._take_last_commands(message, lockstep=True)
                 break
-            self._check_watchdog(now_ns)
+            # The plant stands still until the answer: silence is the daemon's only once it
+            # outlasts a resend (AnswerTimer).
+            self._check_watchdog(now_ns, round(2 * answers.timeout_s * 1e9))
             if message is None or (accepted := self._accept_command(message)) is None:
-                if time.monotonic() - last_sent >= resend_s:
+                if time.monotonic() - last_sent >= answers.timeout_s:
                     self._resend()
-                    last_sent = time.monotonic()
+                    answers.resent()
+                    last_sent, resent = time.monotonic(), True
                 continue
             command = accepted[0]  # lock-step waits for every command: no look-ahead
             if command.sensor_counter != self.counter:
@@ -424,10 +471,13 @@ class PlantEmulator:
             for _ in range(self.sensor_periods_per_command):
                 self._advance(self.substeps)
                 self.noise_m = next_noise(self.physics.params, self.noise_m, self.rng)
+            if not resent:
+                answers.observe(time.monotonic() - first_sent)
             self.counter = next_counter(self.counter)
             self._count_periods(self.sensor_periods_per_command)
             self._send_sample()
-            last_sent = time.monotonic()
+            last_sent = first_sent = time.monotonic()
+            resent = False
 
     def _resend(self) -> None:
         self.counters.resends += 1

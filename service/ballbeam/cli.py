@@ -219,6 +219,8 @@ def command_run(args: argparse.Namespace) -> int:
         "mode": result.config.run.mode,
         "plan_kind": result.config.plan.kind,
         "wall_time_s": result.wall_time_s,
+        "bus": f"{result.config.bus.interface}:{result.config.bus.channel}",
+        **({"bus_choice": result.bus_choice} if result.bus_choice else {}),
         **summary,
         "log_path": str(result.log_path),
     }
@@ -526,6 +528,46 @@ def command_tune(args: argparse.Namespace) -> int:
     return 0
 
 
+def command_bus(args: argparse.Namespace) -> int:
+    """``bus setup``: make the vcan interfaces runs use (root), or print the commands;
+    ``bus status``: where a run's ``auto`` bus goes now."""
+    import os
+    import shlex
+
+    from ballbeam.config import BusSection
+    from ballbeam.runtime.bus import (
+        can_interfaces,
+        resolve_auto,
+        run_setup,
+        setup_commands,
+        socketcan_available,
+    )
+
+    if args.action == "status":
+        choice = resolve_auto(BusSection(), claim=False)
+        print(f"auto: {choice.interface} {choice.channel} ({choice.reason})")
+        return 0
+    commands = setup_commands(args.count, not args.classic, can_interfaces(), args.prefix)
+    if not commands:
+        print(f"ballbeam: {args.count} vcan interface(s) already up", file=sys.stderr)
+        return 0
+    if os.geteuid() != 0:
+        print("ballbeam: not root; as root, run:", file=sys.stderr)
+        for command in commands:
+            print(shlex.join(command))
+        return 0
+    run_setup(commands)
+    if not socketcan_available():
+        print("ballbeam: the vcan interfaces exist, but this kernel refuses CAN sockets "
+              "(can-raw): runs go over udp_multicast", file=sys.stderr)
+        return EXIT_USAGE
+    for found in can_interfaces():
+        if found.virtual and found.name.startswith(args.prefix):
+            print(f"{found.name}: {'CAN FD' if found.fd else 'classic'} (MTU {found.mtu}), "
+                  f"{'up' if found.up else 'down'}")
+    return 0
+
+
 def command_configs(args: argparse.Namespace) -> int:
     from ballbeam.config import resolve_config_path, shipped_configs
 
@@ -682,6 +724,22 @@ def build_parser() -> argparse.ArgumentParser:
     _add_cluster_arguments(tune)
     tune.add_argument("--json", action="store_true", help="print one JSON object, no bar")
     tune.set_defaults(handler=command_tune)
+
+    bus = commands.add_parser(
+        "bus", help="setup: create the vcan interfaces runs use (root; else print the "
+        "commands); status: where an auto bus goes"
+    )
+    bus.add_argument("action", choices=("setup", "status"))
+    bus.add_argument(
+        "--count", type=_positive_int, default=2,
+        help="vcan interfaces, one per run at once (default: 2)",
+    )
+    bus.add_argument("--prefix", default="vcan", help="interface names (default: vcan0, …)")
+    bus.add_argument(
+        "--classic", action="store_true",
+        help="classic CAN (MTU 16: the 8-byte E2E contract) instead of CAN FD (MTU 72)",
+    )
+    bus.set_defaults(handler=command_bus)
 
     configs = commands.add_parser(
         "configs", help="list the configs shipped with the package, or print one"

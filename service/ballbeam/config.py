@@ -632,8 +632,17 @@ class RunSection(_Section):
 class BusSection(_Section):
     """python-can bus, as python-can configures it."""
 
-    interface: str = "udp_multicast"
-    channel: str = DEFAULT_BUS_GROUP
+    interface: str = Field(
+        "auto",
+        description=(
+            "a python-can interface, or auto: SocketCAN on a free CAN FD vcan interface where "
+            "one is up (`ballbeam bus setup`), else udp_multicast on bus.channel"
+        ),
+    )
+    channel: str = Field(
+        DEFAULT_BUS_GROUP,
+        description="the interface's channel (auto: the udp_multicast group it falls back to)",
+    )
     port: int = Field(43113, ge=1, le=65535)
     isolate_runs: bool = Field(
         True, description="ballbeam run: give each run a private group and port"
@@ -646,8 +655,8 @@ class BusSection(_Section):
         None,
         description=(
             "SecOC-style frames (CAN FD: classic payload + freshness + truncated HMAC, keyed "
-            "by a per-run secret); default: on for udp_multicast and virtual, off otherwise "
-            "(classic 8-byte E2E frames, the DBC's contract for real CAN hardware)"
+            "by a per-run secret); default: on for auto, udp_multicast and virtual, off "
+            "otherwise (classic 8-byte E2E frames, the DBC's contract for real CAN hardware)"
         ),
     )
 
@@ -656,7 +665,9 @@ class BusSection(_Section):
         """Whether this bus carries authenticated frames (``authenticate`` resolved)."""
         if self.authenticate is not None:
             return self.authenticate
-        return self.interface in ("udp_multicast", "virtual")
+        # auto goes on a virtual bus only (a CAN FD vcan, or the group): any process there
+        # can write frames.
+        return self.interface in ("auto", "udp_multicast", "virtual")
 
     @model_validator(mode="after")
     def _known_options(self) -> BusSection:
@@ -713,6 +724,8 @@ def _bus_option_names(interface: str) -> set[str]:
     import can
     from can.interfaces import BACKENDS
 
+    if interface == "auto":
+        return _bus_option_names("udp_multicast") & _bus_option_names("socketcan")
     if interface not in BACKENDS:
         raise ValueError(f"bus.interface {interface!r} is not one of python-can's interfaces")
     module, class_name = BACKENDS[interface]

@@ -248,6 +248,7 @@ class Bench:
         self.overrides = [
             f"run.mode='{mode}'",
             f"run.duration_s={duration_s}",
+            "bus.interface='udp_multicast'",  # its group: what the attackers write to
             f"bus.channel='{self.group}'",
             f"bus.port={self.port}",
             f"run.log_dir='{tmp}'",

@@ -14,8 +14,8 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import secrets
 import resource
+import secrets
 import signal
 import subprocess
 import sys

@@ -252,7 +252,8 @@ def test_the_launcher_hands_the_secret_through_a_pipe_and_never_in_argv_or_env(
             return keys[-1]
 
     group = isolated_group(DEFAULT_BUS_GROUP)
-    overrides = ["run.mode='lockstep'", "run.duration_s=0.3", f"bus.channel='{group}'",
+    overrides = ["run.mode='lockstep'", "run.duration_s=0.3", "bus.interface='udp_multicast'",
+                 f"bus.channel='{group}'",
                  f"run.log_dir='{tmp_path}'"]
     launcher.RunKey = SpiedKey  # type: ignore[misc]
     try:
@@ -287,7 +288,8 @@ def test_a_standalone_daemon_needs_the_run_secret_and_reads_it_from_an_fd(
     tmp_path: Path,
 ) -> None:
     group = isolated_group(DEFAULT_BUS_GROUP)
-    sets = set_args([f"bus.channel='{group}'", "controller.start_timeout_s=0.5"])
+    sets = set_args(["bus.interface='udp_multicast'", f"bus.channel='{group}'",
+                     "controller.start_timeout_s=0.5"])
     no_secret = subprocess.run(
         ballbeam_argv("daemon", *sets, "--log", str(tmp_path / "a.mcap")),
         capture_output=True, text=True, cwd=REPO, timeout=120, check=False,

@@ -30,6 +30,7 @@ def test_run_with_an_unusable_log_dir_refuses_before_starting_anything(tmp_path:
             *set_args(
                 [
                     "bus.isolate_runs=false",
+                    "bus.interface='udp_multicast'",
                     f"bus.channel='{group}'",
                     f"run.log_dir='{blocker / 'logs'}'",
                 ]
@@ -56,7 +57,9 @@ def test_daemon_refuses_a_log_it_cannot_write_before_touching_the_bus(
     watch = BusWatch(group)
     try:
         result = ballbeam(
-            "daemon", str(PAPER), *set_args([f"bus.channel='{group}'"]), "--log", path
+            "daemon", str(PAPER),
+            *set_args(["bus.interface='udp_multicast'", f"bus.channel='{group}'"]),
+            "--log", path,
         )
         time.sleep(0.2)
     finally:

@@ -1,12 +1,15 @@
 """Opening the CAN bus as configured, and refusing one whose traffic would leave the host.
 
-``udp_multicast`` on an interface-local IPv6 group (``ff11::/16``, scope 1) is the default: the
-kernel loops such packets back to local listeners and never transmits them. Wider scopes and
-IPv4 groups go out on the network and are refused unless ``bus.allow_off_host`` is set.
+``bus.interface = "auto"`` (the default) is SocketCAN on a CAN FD vcan interface where the
+kernel has one (``ballbeam bus setup`` creates them), and ``udp_multicast`` on an
+interface-local IPv6 group (``ff11::/16``, scope 1) otherwise: the kernel loops such packets
+back to local listeners and never transmits them. Wider scopes and IPv4 groups go out on the
+network and are refused unless ``bus.allow_off_host`` is set.
 """
 
 from __future__ import annotations
 
+import contextlib
 import ipaddress
 import os
 import secrets
@@ -14,6 +17,8 @@ import socket
 import sys
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import can
@@ -24,8 +29,15 @@ from ballbeam.errors import BusError
 INTERFACE_LOCAL_SCOPE = 1
 VCAN_HINT = (
     "create it with: sudo modprobe vcan && sudo ip link add dev {channel} type vcan "
-    "&& sudo ip link set up {channel}"
+    "&& sudo ip link set {channel} mtu 72 && sudo ip link set up {channel} "
+    "(or: sudo ballbeam bus setup)"
 )
+ARPHRD_CAN = 280  # /sys/class/net/<name>/type of a CAN interface (linux/if_arp.h)
+CANFD_MTU = 72  # a CAN FD interface's MTU (struct canfd_frame); classic CAN: 16
+CLASSIC_CAN_MTU = 16
+SYS_NET = Path("/sys/class/net")
+# The launcher tells its daemon why "auto" chose the bus it did (recorded in the log).
+BUS_CHOICE_ENV = "BALLBEAM_BUS_CHOICE"
 
 
 def multicast_scope(group: str) -> int | None:
@@ -42,8 +54,9 @@ def multicast_scope(group: str) -> int | None:
 
 
 def check_stays_on_host(bus: BusSection) -> None:
-    """Raise BusError when the configured bus would send frames off this host."""
-    if bus.interface != "udp_multicast" or bus.allow_off_host:
+    """Raise BusError when the configured bus would send frames off this host (``auto``: when
+    its ``udp_multicast`` fallback would)."""
+    if bus.interface not in ("udp_multicast", "auto") or bus.allow_off_host:
         return
     scope = multicast_scope(bus.channel)
     if scope != INTERFACE_LOCAL_SCOPE:
@@ -139,16 +152,155 @@ def free_udp_port() -> int:
     return port
 
 
+# -- SocketCAN vcan interfaces, and what "auto" picks --------------------------------------
+
+
+@dataclass(frozen=True)
+class CanInterface:
+    """A SocketCAN network interface of this host."""
+
+    name: str
+    mtu: int
+    up: bool
+    virtual: bool  # a vcan (its driver is vcan), not an adapter
+
+    @property
+    def fd(self) -> bool:
+        return self.mtu >= CANFD_MTU
+
+
+def can_interfaces(sys_net: Path = SYS_NET) -> list[CanInterface]:
+    """This host's CAN interfaces by name ([] without SocketCAN)."""
+    found = []
+    try:
+        names = sorted(os.listdir(sys_net))
+    except OSError:
+        return []
+    for name in names:
+        node = sys_net / name
+        try:
+            if int((node / "type").read_text()) != ARPHRD_CAN:
+                continue
+            mtu = int((node / "mtu").read_text())
+            flags = int((node / "flags").read_text(), 16)
+        except (OSError, ValueError):
+            continue
+        driver = ""
+        with contextlib.suppress(OSError):
+            driver = os.path.basename(os.readlink(node / "device" / "driver"))
+        # A vcan has no device behind it; an adapter's driver is named there.
+        virtual = not (node / "device").exists() or driver == "vcan"
+        found.append(CanInterface(name, mtu, bool(flags & 0x1), virtual))  # IFF_UP
+    return found
+
+
+def _interface(name: str) -> CanInterface | None:
+    return next((found for found in can_interfaces() if found.name == name), None)
+
+
+# A run holds its vcan interface by binding an abstract Unix socket named after it: one name
+# per network namespace, whoever the user, and released by the kernel when the holder dies.
+CLAIM_PREFIX = "ballbeam-bus-"
+
+
+def claim_interface(name: str) -> socket.socket | None:
+    """Hold ``name`` for this process's run (close the socket to let go); None if another
+    run holds it."""
+    claim = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    try:
+        claim.bind(f"\0{CLAIM_PREFIX}{name}")
+    except OSError:
+        claim.close()
+        return None
+    return claim
+
+
+@dataclass(frozen=True)
+class AutoChoice:
+    """What ``bus.interface = "auto"`` resolved to, and why (the run says so)."""
+
+    interface: str  # "socketcan" or "udp_multicast"
+    channel: str
+    reason: str
+    claim: socket.socket | None = None  # held for the run (launcher): vcan interfaces only
+
+    def overrides_for(self, bus: BusSection) -> list[str]:
+        """``--set`` overrides that make a child's config of ``bus`` name this choice (and
+        keep auto's framing: authenticated unless ``bus.authenticate`` says otherwise)."""
+        return [
+            f"bus.interface='{self.interface}'",
+            f"bus.channel='{self.channel}'",
+            f"bus.authenticate={str(bus.authenticated).lower()}",
+        ]
+
+    def release(self) -> None:
+        if self.claim is not None:
+            self.claim.close()
+
+
+def resolve_auto(bus: BusSection, claim: bool) -> AutoChoice:
+    """Where an ``auto`` bus goes: the first CAN FD vcan interface that is up and that no
+    run holds, else ``udp_multicast`` on ``bus.channel``. With ``claim`` (a run launcher)
+    the interface is held for the run: parallel runs each get a vcan of their own while
+    there are enough, and the interface-local group after."""
+    fallback = "udp_multicast"
+    if not socketcan_available():
+        return AutoChoice(fallback, bus.channel, "no SocketCAN in this kernel")
+    vcans = [found for found in can_interfaces() if found.virtual]
+    usable = [found for found in vcans if found.up and found.fd]
+    for found in usable:
+        held = claim_interface(found.name)
+        if held is None:
+            continue  # another run's
+        if not claim:
+            held.close()
+            held = None
+        return AutoChoice("socketcan", found.name, "a CAN FD vcan interface", held)
+    if usable:
+        why = f"every CAN FD vcan interface is in use by another run ({len(usable)})"
+    elif vcans:
+        listed = ", ".join(
+            f"{found.name} {'classic (MTU 16)' if not found.fd else 'down'}" for found in vcans
+        )
+        why = f"no CAN FD vcan interface that is up ({listed}); see `ballbeam bus setup`"
+    else:
+        why = "no vcan interface (`ballbeam bus setup` creates them)"
+    return AutoChoice(fallback, bus.channel, why)
+
+
+def resolved_bus(bus: BusSection, choice: AutoChoice) -> BusSection:
+    """``bus`` on the interface and channel ``choice`` names, its framing kept."""
+    return bus.model_copy(update={
+        "interface": choice.interface, "channel": choice.channel,
+        "authenticate": bus.authenticated,
+    })
+
+
 def open_bus(bus: BusSection) -> can.BusABC:
     """A python-can bus for ``bus``; BusError with a remedy when it cannot be opened.
 
-    A ``udp_multicast`` bus hears its own group only, not other groups on the same port.
+    A ``udp_multicast`` bus hears its own group only, not other groups on the same port. An
+    ``auto`` bus (a node started alone) takes the first CAN FD vcan that is up, else the
+    group: both nodes of a run started by hand find the same one. An authenticated
+    ``socketcan`` bus is opened for CAN FD, and refused on a classic interface.
     """
     check_stays_on_host(bus)
+    if bus.interface == "auto":
+        bus = resolved_bus(bus, resolve_auto(bus, claim=False))
     options: dict[str, Any] = dict(bus.options)
     if bus.interface == "udp_multicast":
         options.setdefault("port", bus.port)
         options.setdefault("hop_limit", 1)
+    if bus.interface == "socketcan" and bus.authenticated:
+        found = _interface(bus.channel)
+        if found is not None and not found.fd:
+            raise BusError(
+                f"bus {bus.channel} is classic CAN (MTU {found.mtu}): authenticated frames are "
+                f"CAN FD. Make it one (sudo ip link set {bus.channel} down && sudo ip link set "
+                f"{bus.channel} mtu {CANFD_MTU} && sudo ip link set up {bus.channel}), or "
+                "set bus.authenticate = false for the classic 8-byte contract"
+            )
+        options.setdefault("fd", True)
     try:
         opened = can.Bus(interface=bus.interface, channel=bus.channel, **options)
     except ImportError as error:
@@ -228,3 +380,53 @@ def socketcan_available() -> bool:
         return False
     probe.close()
     return True
+
+
+# -- ``ballbeam bus setup`` ----------------------------------------------------------------
+
+VCAN_PREFIX = "vcan"
+
+
+def setup_commands(
+    count: int, fd: bool, existing: list[CanInterface], prefix: str = VCAN_PREFIX
+) -> list[list[str]]:
+    """The commands (root's) that make ``prefix0`` … ``prefix{count-1}`` vcan interfaces that
+    are up, CAN FD (MTU 72) or classic (16): what is already right is left alone."""
+    mtu = CANFD_MTU if fd else CLASSIC_CAN_MTU
+    by_name = {found.name: found for found in existing}
+    commands: list[list[str]] = []
+    for index in range(count):
+        name = f"{prefix}{index}"
+        found = by_name.get(name)
+        if found is not None and found.mtu == mtu and found.up:
+            continue
+        if found is None:
+            commands.append(["ip", "link", "add", "dev", name, "type", "vcan"])
+        elif found.up and found.mtu != mtu:
+            commands.append(["ip", "link", "set", name, "down"])  # the MTU changes when down
+        if found is None or found.mtu != mtu:
+            commands.append(["ip", "link", "set", name, "mtu", str(mtu)])
+        commands.append(["ip", "link", "set", "up", name])
+    if not commands:
+        return []
+    return [["modprobe", "vcan"], ["modprobe", "can-raw"], *commands]
+
+
+def run_setup(commands: list[list[str]]) -> None:
+    """Run ``commands`` in order (as root); BusError naming the first that fails."""
+    import subprocess
+
+    for command in commands:
+        try:
+            done = subprocess.run(command, capture_output=True, text=True, check=False,
+                                  timeout=30)
+        except (OSError, subprocess.TimeoutExpired) as error:
+            raise BusError(f"cannot run {' '.join(command)}: {error}") from error
+        if done.returncode != 0:
+            said = (done.stderr or done.stdout).strip().splitlines()
+            raise BusError(
+                f"{' '.join(command)} failed: {said[-1] if said else done.returncode}"
+                + ("; this kernel has no vcan: runs go over udp_multicast (README: "
+                   "\"SocketCAN in a VM\")" if command[0] == "modprobe" or "vcan" in command
+                   else "")
+            )

@@ -34,9 +34,12 @@ from ballbeam.errors import BallbeamError
 from ballbeam.files import remove_if_empty
 from ballbeam.protocol.secoc import RunKey
 from ballbeam.runtime.bus import (
+    BUS_CHOICE_ENV,
+    AutoChoice,
     check_before_start,
     free_udp_port,
     isolated_group,
+    resolve_auto,
 )
 from ballbeam.runtime.exit_codes import (
     EXIT_FAILED,
@@ -71,6 +74,7 @@ class LaunchResult:
     emulator_exit: int
     wall_time_s: float
     emulator_stderr: str = ""  # its own report: the counters it ends with, for a cross-check
+    bus_choice: str = ""  # why "auto" went where it did ("" for a named interface)
 
 
 def _tail(text: str, lines: int = 8) -> str:
@@ -194,6 +198,28 @@ def launch_run(
             flush=True,
         )
     child_overrides = list(overrides)
+    choice: AutoChoice | None = None
+    if config.bus.interface == "auto":
+        # A vcan of the run's own (held until it ends), else the group: the children are
+        # told which, so that they agree by construction.
+        choice = resolve_auto(config.bus, claim=True)
+        child_overrides += choice.overrides_for(config.bus)
+        config = load_config(config_path, child_overrides)
+    try:
+        return _launch(config, config_path, child_overrides, on_started, live_args, choice)
+    finally:
+        if choice is not None:
+            choice.release()
+
+
+def _launch(
+    config: Config,
+    config_path: str | None,
+    child_overrides: list[str],
+    on_started: Callable[[dict[str, subprocess.Popen[str]]], None] | None,
+    live_args: list[str],
+    choice: AutoChoice | None,
+) -> LaunchResult:
     if config.bus.interface == "udp_multicast" and config.bus.isolate_runs:
         # Group and port both: open_bus makes its sockets hear their own group only, and a
         # port of its own keeps the run apart from listeners that do not.
@@ -254,7 +280,8 @@ def launch_run(
             ),
             # Its end of the link also says when the run is over (the emulator then sends its
             # final counters, and the daemon records them).
-            env={**os.environ, PEER_LINK_WRITE_ENV: str(link_write), **lock_env},
+            env={**os.environ, PEER_LINK_WRITE_ENV: str(link_write), **lock_env,
+                 **({} if choice is None else {BUS_CHOICE_ENV: f"auto: {choice.reason}"})},
             start_new_session=True,
         )
     except BaseException:
@@ -311,4 +338,5 @@ def launch_run(
         emulator_exit=emulator_exit,
         wall_time_s=time.monotonic() - started,
         emulator_stderr=emulator_errors,
+        bus_choice="" if choice is None else f"auto: {choice.reason}",
     )

@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import os
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, BinaryIO
@@ -18,7 +19,7 @@ from ballbeam.logs.recorder import Recorder
 from ballbeam.logs.recording import RunRecording
 from ballbeam.protocol.frames import FrameContract
 from ballbeam.protocol.secoc import FrameAuthenticator, RunKey
-from ballbeam.runtime.bus import open_bus
+from ballbeam.runtime.bus import BUS_CHOICE_ENV, open_bus, resolve_auto, resolved_bus
 from ballbeam.runtime.daemon.loop import ControllerDaemon
 from ballbeam.runtime.owner_lock import EMULATOR_SLOT, OwnerLock
 from ballbeam.runtime.peer_link import run_over_fd
@@ -119,6 +120,13 @@ def _run_recorded(
     log_stream: BinaryIO | None,
 ) -> str:
     design = controller_design(config)  # before touching the bus: a bad config fails fast
+    # The bus the run goes on, named in its log: "auto" as the launcher resolved it (it says
+    # why), or as this daemon does when started by hand.
+    bus_choice = os.environ.get(BUS_CHOICE_ENV, "")
+    if config.bus.interface == "auto":
+        choice = resolve_auto(config.bus, claim=False)
+        config = config.model_copy(update={"bus": resolved_bus(config.bus, choice)})
+        bus_choice = f"auto: {choice.reason}"
     # The recorder's writer thread shares the GIL; switching sooner bounds how long it can
     # hold up the control loop's wake-up (measured: p99 lateness roughly halved).
     scheduling: dict[str, str] = {}
@@ -159,6 +167,7 @@ def _run_recorded(
                 "sensor_period_ns": str(1_000_000_000 // config.plant.sensor_rate_hz),
                 "bus": f"{config.bus.interface}:{config.bus.channel}",
                 "authenticated": str(config.bus.authenticated).lower(),
+                **({"bus_choice": bus_choice} if bus_choice else {}),
                 **{f"scheduling_{key}": value for key, value in scheduling.items()},
             },
         },
