@@ -695,8 +695,10 @@ class BusSection(_Section):
 
 def _bus_carries_fd(interface: str, options: Mapping[str, object]) -> bool:
     """Whether python-can's ``interface`` bus, with ``options``, carries CAN FD frames: its
-    ``fd`` keyword as given, else that keyword's default. True where the bus class has no such
-    keyword (``virtual`` carries any frame) or cannot be loaded here (opening it says why)."""
+    ``fd`` keyword as given, else that keyword's default (``socketcan``: CAN FD, as ``open_bus``
+    opens an authenticated one; a classic interface is refused there, by its MTU). True where
+    the bus class has no such keyword (``virtual`` carries any frame) or cannot be loaded here
+    (opening it says why)."""
     import importlib
     import inspect
 
@@ -704,6 +706,8 @@ def _bus_carries_fd(interface: str, options: Mapping[str, object]) -> bool:
 
     if "fd" in options:
         return bool(options["fd"])
+    if interface == "socketcan":  # opened for CAN FD when authenticated (runtime/bus.py)
+        return True
     if interface not in BACKENDS:
         return True
     module, class_name = BACKENDS[interface]
