@@ -78,7 +78,9 @@ class AnswerTimer:
     never be measured: every sample resent)."""
 
     __slots__ = ("backoff", "floor_s", "smoothed_s", "variation_s")
-    MAX_BACKOFF = 64
+    # a slow peer up to 4 waits is measured; a dead one is still resent to every 4 waits (a
+    # restarted daemon is answered soon)
+    MAX_BACKOFF = 4
 
     def __init__(self, floor_s: float) -> None:
         self.floor_s = floor_s
@@ -100,8 +102,18 @@ class AnswerTimer:
 
     @property
     def timeout_s(self) -> float:
+        return self._retransmission_s * self.backoff
+
+    @property
+    def silence_s(self) -> float:
+        """When the daemon is silent: two waits, without the backoff (which grows while a dead
+        daemon is resent to, and would put off the watchdog by up to 4 waits)."""
+        return 2.0 * self._retransmission_s
+
+    @property
+    def _retransmission_s(self) -> float:
         measured_s = 0.0 if self.smoothed_s is None else self.smoothed_s + 4 * self.variation_s
-        return max(self.floor_s, measured_s) * self.backoff
+        return max(self.floor_s, measured_s)
 
 
 @dataclass
@@ -451,7 +463,7 @@ class PlantEmulator:
                 break
             # The plant stands still until the answer: silence is the daemon's only once it
             # outlasts a resend (AnswerTimer).
-            self._check_watchdog(now_ns, round(2 * answers.timeout_s * 1e9))
+            self._check_watchdog(now_ns, round(answers.silence_s * 1e9))
             if message is None or (accepted := self._accept_command(message)) is None:
                 if time.monotonic() - last_sent >= answers.timeout_s:
                     self._resend()

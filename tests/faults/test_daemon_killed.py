@@ -45,9 +45,11 @@ KILLS_PER_MODE = 10
 # writer thread's poll (5 ms). Allowed: 100 ms, plus 50 ms for the writer thread being
 # descheduled or kept from the GIL on this shared two-core machine.
 TRUNCATION_BOUND_MS = 150.0
-# The emulator checks its watchdog once per sensor period (real time) or whenever its receive
-# wait ends (lock-step: at most one resend interval); a few ms more for scheduling.
-WATCHDOG_SLACK_MS = {"realtime": 1.0 + 4.0, "lockstep": DEFAULTS.plant.lockstep_resend_ms + 4.0}
+# The emulator checks its watchdog once per sensor period (real time); in lock-step it calls the
+# daemon silent after two answer waits (AnswerTimer.silence_s: the measured retransmission
+# timeout, at least plant.lockstep_resend_ms, without the resend backoff), which a shared
+# machine's round trips stretch to about twice the floor; a few ms more for scheduling.
+WATCHDOG_SLACK_MS = {"realtime": 1.0 + 4.0, "lockstep": 4 * DEFAULTS.plant.lockstep_resend_ms + 4.0}
 
 
 @dataclass
