@@ -503,30 +503,25 @@ class PlantSection(_Section):
 
 
 
-class SquareWaveSection(_Section):
+class _WaveSection(_Section):
+    """A periodic reference around ``offset_m`` that stays within the beam's task range."""
+
+    amplitude_m: float = Field(gt=0, le=TASK_POSITION_LIMIT_M)
+    period_s: float = Field(ge=MIN_TASK_PERIOD_S, le=MAX_TASK_PERIOD_S)
+    offset_m: float = Field(0.0, ge=-TASK_POSITION_LIMIT_M, le=TASK_POSITION_LIMIT_M)
+
+    @model_validator(mode="after")
+    def _within_limit(self) -> _WaveSection:
+        _wave_within_limit(self.amplitude_m, self.offset_m)
+        return self
+
+
+class SquareWaveSection(_WaveSection):
     """A square wave around ``offset_m``: +amplitude for the first half period, then −."""
 
-    amplitude_m: float = Field(gt=0, le=TASK_POSITION_LIMIT_M)
-    period_s: float = Field(ge=MIN_TASK_PERIOD_S, le=MAX_TASK_PERIOD_S)
-    offset_m: float = Field(0.0, ge=-TASK_POSITION_LIMIT_M, le=TASK_POSITION_LIMIT_M)
 
-    @model_validator(mode="after")
-    def _within_limit(self) -> SquareWaveSection:
-        _wave_within_limit(self.amplitude_m, self.offset_m)
-        return self
-
-
-class SineWaveSection(_Section):
+class SineWaveSection(_WaveSection):
     """x_r(t) = offset_m + amplitude_m · sin(2π t / period_s)."""
-
-    amplitude_m: float = Field(gt=0, le=TASK_POSITION_LIMIT_M)
-    period_s: float = Field(ge=MIN_TASK_PERIOD_S, le=MAX_TASK_PERIOD_S)
-    offset_m: float = Field(0.0, ge=-TASK_POSITION_LIMIT_M, le=TASK_POSITION_LIMIT_M)
-
-    @model_validator(mode="after")
-    def _within_limit(self) -> SineWaveSection:
-        _wave_within_limit(self.amplitude_m, self.offset_m)
-        return self
 
 
 def _wave_within_limit(amplitude_m: float, offset_m: float) -> None:

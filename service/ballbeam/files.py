@@ -111,25 +111,23 @@ def write_new(path: StrPath, content: bytes | Callable[[BinaryIO], None]) -> Non
     OutputExistsError naming ``path`` if anything is there; OSError for the rest."""
     if os.path.lexists(path):
         raise OutputExistsError(exists_message(path))
-    temporary, stream = temporary_beside(path)
-    try:
-        with stream:
-            if isinstance(content, bytes):
-                stream.write(content)
-            else:
-                content(stream)
-            stream.flush()
-            os.fsync(stream.fileno())
-        link_new(temporary, path)
-    finally:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(temporary)
+    _write_whole_beside(path, content, lambda temporary: link_new(temporary, path))
 
 
 def replace_file(path: StrPath, content: bytes | Callable[[BinaryIO], None]) -> None:
     """Write a file whole that takes the place of a command's own earlier output (a resumed
     study's table and plots): into a temporary file beside it, then renamed over it. rename()
     replaces a link standing at ``path`` itself, never the file it points to."""
+    _write_whole_beside(path, content, lambda temporary: os.replace(temporary, path))
+
+
+def _write_whole_beside(
+    path: StrPath,
+    content: bytes | Callable[[BinaryIO], None],
+    put_in_place: Callable[[Path], None],
+) -> None:
+    """``content`` into a new temporary file beside ``path``, on disk, then ``put_in_place``;
+    the temporary is gone afterwards whatever happened."""
     temporary, stream = temporary_beside(path)
     try:
         with stream:
@@ -139,7 +137,7 @@ def replace_file(path: StrPath, content: bytes | Callable[[BinaryIO], None]) -> 
                 content(stream)
             stream.flush()
             os.fsync(stream.fileno())
-        os.replace(temporary, path)
+        put_in_place(temporary)
     finally:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(temporary)
