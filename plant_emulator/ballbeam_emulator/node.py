@@ -188,6 +188,10 @@ class PlantEmulator:
         self.counters = EmulatorCounters()
         self.watchdog_ns = int(config.plant.watchdog_ms * 1e6)
         self.last_command_ns: int | None = None
+        # Every frame that reached this host before this instant has been read. The watchdog
+        # judges silence up to here, not up to now: commands queued while this process was
+        # off the CPU (behind a flood, say) came in time; only reading them came late.
+        self.heard_until_ns: int | None = None
         self.watchdog_zeroed = False
         # Status snapshots: frames waiting to go, one per sample sent; the first at the start.
         self.status_period_samples = max(1, round(STATUS_PERIOD_S * config.plant.sensor_rate_hz))
@@ -261,7 +265,10 @@ class PlantEmulator:
 
     def _recv(self, timeout_s: float, poll_s: float = 0.0) -> can.Message | None:
         """The next message within ``timeout_s``; datagrams that are no frame are counted."""
-        return recv_frame(self.bus, timeout_s, self._count_malformed, poll_s)
+        message = recv_frame(self.bus, timeout_s, self._count_malformed, poll_s)
+        now_ns = time.monotonic_ns()
+        self.heard_until_ns = now_ns if message is None else arrival_ns(message, now_ns)
+        return message
 
     def _count_malformed(self, _detail: str) -> None:
         self.counters.rejected += 1
@@ -386,6 +393,8 @@ class PlantEmulator:
         ``floor_ns``)."""
         if self.last_command_ns is None or self.watchdog_zeroed:
             return
+        if self.heard_until_ns is not None:
+            now_ns = min(now_ns, self.heard_until_ns)
         if now_ns - self.last_command_ns > max(self.watchdog_ns, floor_ns):
             self.voltage_v = 0.0
             self.lookahead_v = ()

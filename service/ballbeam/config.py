@@ -960,7 +960,7 @@ def parse_override(assignment: str) -> dict[str, Any]:
     if not separator or not key or any(not part.strip() for part in key.split(".")):
         raise ConfigError(f"override {assignment!r} is not of the form dotted.key=value")
     try:
-        value = _loads_bounded(f"value = {text.strip()}", f"override {key}")["value"]
+        value = _loads_bounded(f"value = {text.strip()}", f"override {key!r}")["value"]
     except tomllib.TOMLDecodeError:
         value = text.strip()
     nested: dict[str, Any] = {}

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 import msgpack
+import numpy as np
 
 from ballbeam.config import DEFAULT_BUS_GROUP, load_config
 from ballbeam.evaluation.summary import summarise
@@ -226,6 +227,19 @@ def watchdog_trips_ms(stderr: str) -> list[float]:
             r"watchdog: no valid command for ([0-9.]+) ms, voltage zeroed", stderr
         )
     ]
+
+
+def assert_watchdog_tripped_only_when_the_daemon_was_silent(outcome: Outcome) -> None:
+    """The plant's watchdog trips at the end (the daemon left) and otherwise only where the
+    daemon sent nothing for ``plant.watchdog_ms`` (its process was off the CPU that long, on
+    a shared machine): never for a command that was sent."""
+    watchdog_ms = DEFAULTS.plant.watchdog_ms
+    sent_ns = outcome.log.topics["/can/tx"].log_time_ns
+    silences = int((np.diff(sent_ns) > watchdog_ms * 1e6).sum())
+    trips = outcome.emulator["watchdog_trips"]
+    assert trips <= 1 + silences, (trips, silences, outcome.emulator)
+    if silences:
+        figure("daemon_silences_over_watchdog", silences)
 
 
 class Bench:

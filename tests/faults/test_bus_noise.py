@@ -32,6 +32,7 @@ from .harness import (
     BusWatch,
     Outcome,
     assert_settles_like,
+    assert_watchdog_tripped_only_when_the_daemon_was_silent,
     faults,
     figure,
     finish_flood,
@@ -112,7 +113,9 @@ def run_with_flood(
 
 
 # Not a speed target: the loop stays on wall time and runs nearly every period under the flood.
-MAX_SKIPPED_FRACTION = 0.05
+# Unprivileged (no SCHED_FIFO) on two cores, daemon, emulator and flood share them: the
+# periods skipped are the scheduler's, and vary with the machine (docs/decisions.md).
+MAX_SKIPPED_FRACTION = 0.10
 
 
 @pytest.mark.bus
@@ -148,7 +151,7 @@ def test_a_flood_of_foreign_frames_is_rejected_and_counted_while_the_loop_holds_
     assert np.abs(sensor["position_counts"][fresh]).max() < 32767
     assert outcome.emulator["commands_applied"] <= len(outcome.log.topics["/can/tx"])
     assert not (sensor["status"] & STATUS_WATCHDOG).any(), "the plant's watchdog tripped"
-    assert outcome.emulator["watchdog_trips"] <= 1  # the one at the end, after the daemon left
+    assert_watchdog_tripped_only_when_the_daemon_was_silent(outcome)
     assert outcome.emulator["rejected"] > 0 and outcome.emulator["own_or_foreign"] > 0
     assert verify(outcome.log).ok
     # The loop held its rate: 4000 periods on wall time, nearly all of them run.
