@@ -29,14 +29,14 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import multiprocessing
 import statistics
 import sys
 import tempfile
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import asdict, dataclass, replace
 from functools import partial
-from multiprocessing import Pool
 from pathlib import Path
 from typing import Any
 
@@ -465,6 +465,34 @@ def _usage_error(message: str) -> int:
     return 2
 
 
+class _InlinePool:
+    """One process: the runs in this one (no fork of a process that may hold threads)."""
+
+    def __enter__(self) -> _InlinePool:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        return None
+
+    @staticmethod
+    def map(function: Callable[[Any], Any], items: Iterable[Any]) -> list[Any]:
+        return [function(item) for item in items]
+
+    @staticmethod
+    def imap_unordered(
+        function: Callable[[Any], Any], items: Iterable[Any], chunksize: int = 1
+    ) -> Iterator[Any]:
+        return (function(item) for item in items)
+
+
+def _pool(processes: int) -> Any:
+    """Workers started fresh (spawn): forking a process that runs threads (a test runner, a
+    Dask client) can copy a held lock into the child, which then waits forever."""
+    if processes == 1:
+        return _InlinePool()
+    return multiprocessing.get_context("spawn").Pool(processes)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     parser.add_argument("--config", default=PAPER)
@@ -526,7 +554,7 @@ def main(argv: list[str] | None = None) -> int:
     if not target_overrides:
         return _usage_error("no target the config accepts; " + "; ".join(notes))
     started = time.perf_counter()
-    with Pool(args.processes) as pool:
+    with _pool(args.processes) as pool:
         rows: list[dict[str, Any]] = []
         for target in target_overrides:
             paper_t_star = design_t_star_s(base, target)
