@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import fcntl
 import importlib
 import subprocess
 import sys
-from collections.abc import Iterator
+import tempfile
+from collections.abc import Generator, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from types import ModuleType
 
@@ -39,6 +42,46 @@ def ballbeam(*args: str, timeout_s: float = 300) -> subprocess.CompletedProcess[
         check=False,
         cwd=REPO,
     )
+
+
+# ---- tests on wall time run alone -----------------------------------------------------------
+#
+# Under ``pytest -n`` (pytest-xdist) the workers share the machine's cores. A test marked
+# ``realtime`` (a daemon and a plant on wall time, or bounds on how late a process may be)
+# measures this machine's scheduling, so it runs while no other test does: every test holds a
+# readers-writer lock of the run for its whole protocol (set-up to tear-down), shared, and a
+# ``realtime`` one exclusive. A gate taken first keeps new shared holders from overtaking a
+# waiting exclusive one (else the other worker's next test would always get in first).
+
+
+class RunLock:
+    def __init__(self, run_id: str) -> None:
+        base = Path(tempfile.gettempdir()) / f"ballbeam-tests-{run_id}"
+        self.gate_path, self.room_path = base.with_suffix(".gate"), base.with_suffix(".room")
+
+    @contextmanager
+    def held(self, exclusive: bool) -> Generator[None, None, None]:
+        with self.gate_path.open("a") as gate, self.room_path.open("a") as room:
+            fcntl.flock(gate, fcntl.LOCK_EX)
+            try:
+                fcntl.flock(room, fcntl.LOCK_EX if exclusive else fcntl.LOCK_SH)
+            finally:
+                fcntl.flock(gate, fcntl.LOCK_UN)
+            try:
+                yield
+            finally:
+                fcntl.flock(room, fcntl.LOCK_UN)
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_protocol(
+    item: pytest.Item, nextitem: pytest.Item | None
+) -> Generator[None, object, object]:
+    worker = getattr(item.config, "workerinput", None)
+    if worker is None:  # one process: nothing runs beside it
+        return (yield)
+    with RunLock(worker["testrunuid"]).held(item.get_closest_marker("realtime") is not None):
+        return (yield)
 
 
 @pytest.fixture

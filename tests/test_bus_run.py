@@ -75,6 +75,7 @@ def test_lockstep_is_deterministic(tmp_path: Path) -> None:
     assert np.array_equal(commands[0], commands[1])
 
 
+@pytest.mark.realtime
 def test_realtime_run_at_1khz_settles_like_offline(tmp_path: Path, offline_settle_s: float) -> None:
     summary = run_json(PAPER, tmp_path, "run.mode='realtime'")
     assert summary["mode"] == "realtime"

@@ -40,6 +40,9 @@ from ballbeam.runtime.stop import StopFlag
 from ballbeam.runtime.ticker import Tick
 from ballbeam_emulator.node import PlantEmulator, arrival_ns
 
+# On wall time: alone under pytest -n (tests/conftest.py).
+pytestmark = pytest.mark.realtime
+
 CONTRACT = FrameContract.load()
 
 

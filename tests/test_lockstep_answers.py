@@ -63,6 +63,7 @@ def _slow_daemon(channel: str, answer_after_s: float, samples: int, stop: StopFl
     stop.set("test over")
 
 
+@pytest.mark.realtime
 def test_a_peer_slower_than_the_floor_is_neither_flooded_nor_called_silent() -> None:
     channel = f"ballbeam-test-{secrets.token_hex(4)}"
     config = load_config(None, [

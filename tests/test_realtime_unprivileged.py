@@ -19,6 +19,9 @@ from ballbeam.logs.reader import read_log
 
 from .conftest import REPO, import_bench
 
+# On wall time: alone under pytest -n (tests/conftest.py).
+pytestmark = pytest.mark.realtime
+
 REFUSED = "real-time scheduling refused"
 THETA_LIMIT_DEG = 52.0
 TRUTH_RESOLUTION_DEG = 1e-3  # the truth frame's 1e-5 rad, with room to spare

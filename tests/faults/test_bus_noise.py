@@ -40,6 +40,9 @@ from .harness import (
     summary_meta,
 )
 
+# On wall time: alone under pytest -n (tests/conftest.py).
+pytestmark = pytest.mark.realtime
+
 FLOOD = Path(__file__).resolve().parents[1] / "helpers" / "flood.py"
 
 

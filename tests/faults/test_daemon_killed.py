@@ -40,6 +40,9 @@ from .harness import (
     watchdog_trips_ms,
 )
 
+# On wall time: alone under pytest -n (tests/conftest.py).
+pytestmark = pytest.mark.realtime
+
 KILLS_PER_MODE = 10
 # A killed daemon loses what its recorder had not flushed: one flush interval (30 ms), plus the
 # writer thread's poll (5 ms). Allowed: 100 ms, plus 50 ms for the writer thread being

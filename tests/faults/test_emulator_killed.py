@@ -27,6 +27,9 @@ from .harness import (
     summary_meta,
 )
 
+# On wall time: alone under pytest -n (tests/conftest.py).
+pytestmark = pytest.mark.realtime
+
 
 def kill_emulator_then_daemon_lost(bench: Bench, after_s: float) -> None:
     """Once the loop cycles, wait ``after_s``, SIGKILL the emulator; the daemon must then end

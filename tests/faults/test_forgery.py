@@ -49,6 +49,9 @@ from .harness import (
     summary_meta,
 )
 
+# On wall time: alone under pytest -n (tests/conftest.py).
+pytestmark = pytest.mark.realtime
+
 FLOOD = Path(__file__).resolve().parents[1] / "helpers" / "flood.py"
 ATTACK_RATE_HZ = 5000
 ATTACK_MAX_FRAMES = 15_000

@@ -27,6 +27,9 @@ from .harness import (
     summary_meta,
 )
 
+# On wall time: alone under pytest -n (tests/conftest.py).
+pytestmark = pytest.mark.realtime
+
 
 @pytest.mark.bus
 @pytest.mark.parametrize("loss", ["sensor_loss", "command_loss"])

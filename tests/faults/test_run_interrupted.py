@@ -20,6 +20,9 @@ from ballbeam.logs.reader import read_log
 from ..conftest import PAPER, REPO, ballbeam_argv
 from .harness import START_TIMEOUT_S, log_started, shutdown_frames, summary_meta
 
+# On wall time: alone under pytest -n (tests/conftest.py).
+pytestmark = pytest.mark.realtime
+
 
 def children_of(pid: int) -> list[int]:
     children = []

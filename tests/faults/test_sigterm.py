@@ -15,6 +15,9 @@ from ballbeam.logs.reader import read_log
 
 from .harness import Bench, emulator_counters, events, shutdown_frames, summary_meta
 
+# On wall time: alone under pytest -n (tests/conftest.py).
+pytestmark = pytest.mark.realtime
+
 
 @pytest.mark.bus
 @pytest.mark.parametrize("index", range(5))

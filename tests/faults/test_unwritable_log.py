@@ -16,6 +16,9 @@ from ballbeam.runtime.bus import isolated_group
 from ..conftest import PAPER, ballbeam
 from .harness import Bench, BusWatch, commands_heard, figure, one_error_line, set_args
 
+# On wall time: alone under pytest -n (tests/conftest.py).
+pytestmark = pytest.mark.realtime
+
 
 @pytest.mark.bus
 def test_run_with_an_unusable_log_dir_refuses_before_starting_anything(tmp_path: Path) -> None:

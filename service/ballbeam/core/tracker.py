@@ -56,10 +56,10 @@ from typing import Literal
 import numpy as np
 import scipy.integrate
 import scipy.linalg
-import scipy.signal
 
 from ballbeam.core.model import LinearModel, zoh_generator
 from ballbeam.core.planning.plan import Plan, PlanSamples
+from ballbeam.core.recursion import first_order_response
 from ballbeam.errors import ConfigError
 
 Terminal = Literal["stationary", "zero"]
@@ -492,7 +492,7 @@ def _backward_lti(
         for q in range(p + 1, n):
             drive += T[p, q] * z[q, :-1]
         pole = T[p, p]
-        z[p, 1:] = scipy.signal.lfilter([1.0], [1.0, -pole], drive, zi=[pole * z[p, 0]])[0]
+        z[p, 1:] = first_order_response(pole, drive, z[p, 0])
     v_back = _cols(U.real, np.ascontiguousarray(z.real)) - _cols(
         U.imag, np.ascontiguousarray(z.imag)
     )

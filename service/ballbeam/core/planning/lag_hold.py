@@ -16,9 +16,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.signal
 
 from ballbeam.core.model import LinearModel
+from ballbeam.core.recursion import first_order_response
 from ballbeam.errors import ConfigError
 
 
@@ -86,7 +86,7 @@ def _simulate(p: _Params, step_s: float, x0: np.ndarray, input_v: np.ndarray) ->
     rate = np.empty(n + 1)
     rate[0] = x0[1]
     if n:  # θ̇_{k+1} = E θ̇_k + (1 − E) w_k
-        rate[1:] = scipy.signal.lfilter([1.0 - E], [1.0, -E], w, zi=[E * x0[1]])[0]
+        rate[1:] = first_order_response(E, w, x0[1], gain=1.0 - E)
     r = rate[:-1]
     theta = np.empty(n + 1)
     theta[0] = x0[0]
