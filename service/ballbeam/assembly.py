@@ -18,7 +18,6 @@ from ballbeam.config import (
     ControllerSection,
     LimitsSection,
     SensorsSection,
-    TaskSection,
 )
 from ballbeam.core.adaptation import BallGainAdaptation, DeadZoneLearning, NoiseAdaptation
 from ballbeam.core.control import ControllerDesign, ObserverLaw, RestGains
@@ -29,7 +28,7 @@ from ballbeam.core.observer import design_observer
 from ballbeam.core.planning.plan import Plan
 from ballbeam.core.plant import ADC_COUNT_LIMIT, EmulatedPlant, PlantPhysics, tap_step
 from ballbeam.core.simulate import SimulationTrace, simulate_closed_loop
-from ballbeam.core.task import FixedTarget, SineWave, SquareWave, StepSchedule, Task
+from ballbeam.core.task import Task
 from ballbeam.core.tracker import (
     StationaryTracker,
     stationary_gain,
@@ -63,21 +62,7 @@ def true_model(config: Config) -> LinearModel:
 
 def make_task(config: Config) -> Task:
     """The ``[task]`` section as the core's reference (a square wave stays periodic)."""
-    return task_of(config.task)
-
-
-def task_of(task: TaskSection) -> Task:
-    """A ``[task]`` section as the core's reference."""
-    if task.setpoints is not None:
-        times, targets = zip(*task.setpoints, strict=True)
-        return StepSchedule(times_s=tuple(times), targets_m=tuple(targets))
-    if task.square is not None:
-        square = task.square
-        return SquareWave(square.amplitude_m, square.period_s, square.offset_m)
-    if task.sine is not None:
-        sine = task.sine
-        return SineWave(sine.amplitude_m, sine.period_s, sine.offset_m)
-    return FixedTarget(task.target_m)
+    return config.task.reference()
 
 
 def fixed_target_m(config: Config) -> float:

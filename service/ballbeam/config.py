@@ -25,6 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from ballbeam.core.metrics import EXPECTABLE_METRICS
 from ballbeam.core.model import PhysicalConstants
+from ballbeam.core.task import FixedTarget, SineWave, SquareWave, StepSchedule, Task
 from ballbeam.errors import ConfigError
 from ballbeam.files import not_a_regular_file
 
@@ -590,6 +591,18 @@ class TaskSection(_Section):
         if self.sine is not None:
             return "sine"
         return "fixed" if self.setpoints is None and self.square is None else "steps"
+
+    def reference(self) -> Task:
+        """This section as the core's reference (a square wave stays periodic)."""
+        if self.setpoints is not None:
+            times, targets = zip(*self.setpoints, strict=True)
+            return StepSchedule(times_s=tuple(times), targets_m=tuple(targets))
+        if self.square is not None:
+            square = self.square
+            return SquareWave(square.amplitude_m, square.period_s, square.offset_m)
+        if self.sine is not None:
+            return SineWave(self.sine.amplitude_m, self.sine.period_s, self.sine.offset_m)
+        return FixedTarget(self.target_m)
 
 
 class SensorsSection(_Section):

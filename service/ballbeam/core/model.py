@@ -10,7 +10,6 @@ from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
-import scipy.linalg
 
 from ballbeam.errors import ConfigError
 
@@ -174,5 +173,8 @@ def zoh_generator(A: np.ndarray, B: np.ndarray) -> np.ndarray:
 
 def zoh_transition(A: np.ndarray, B: np.ndarray, duration_s: float) -> np.ndarray:
     """``expm(F t)`` with ``F = zoh_generator(A, B)``: ``[[Ad, Bd], [0, I]]`` over ``t``."""
-    transition: np.ndarray = scipy.linalg.expm(zoh_generator(A, B) * duration_s)
+    # Imported here: every process reads the model, few discretise it.
+    from scipy.linalg import expm
+
+    transition: np.ndarray = expm(zoh_generator(A, B) * duration_s)
     return transition

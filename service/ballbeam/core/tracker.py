@@ -54,7 +54,6 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-import scipy.integrate
 import scipy.linalg
 
 from ballbeam.core.model import LinearModel, zoh_generator
@@ -241,7 +240,10 @@ def continuous_tracker(
             return np.concatenate([S_dot.ravel(), v_dot])
 
         y_T = np.concatenate([S_T.ravel(), S_T @ x_T])
-    solution = scipy.integrate.solve_ivp(
+    # Imported here: only this path integrates, and the import costs every process.
+    from scipy.integrate import solve_ivp
+
+    solution = solve_ivp(
         rhs,
         (horizon_s, float(time_s[0])),
         y_T,

@@ -285,12 +285,11 @@ def task_from_log(run_log: RunLog) -> Task:
     paper's, x = 0); LogFormatError if the recorded section is not a valid one."""
     from pydantic import ValidationError
 
-    from ballbeam.assembly import task_of
     from ballbeam.config import TaskSection
 
     section = _resolved_config(run_log).get("task", {})
     try:
-        return task_of(TaskSection.model_validate(section))
+        return TaskSection.model_validate(section).reference()
     except (ValidationError, BallbeamError) as error:
         raise LogFormatError(f"{run_log.path}: the recorded [task] is not usable") from error
 
