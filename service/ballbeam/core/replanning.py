@@ -13,8 +13,8 @@ Each 1 ms cycle:
 
   The initial conditions of each window are nuisance parameters, projected out; the windows'
   information adds up, starting from a Gaussian prior (the design values, broad), so the
-  estimate always has a covariance: the controller's margins are read from it. A window that
-  its own best fit does not explain (a tap, a hard stop) is left out by a χ² test.
+  estimate always has a covariance: the controller's margins are read from it. A window the
+  current estimate does not predict (a tap, a hard stop) is left out by a χ² test.
 * **Plan**: minimum-time arcs (``planning.arcs``) of the *identified* model, in drive units
   (the voltage past the dead zone). The usable drive is (5 V · α̂ − ĉ − z·σ) / α̂: the lower
   confidence bound of the full-voltage drive, less a reserve for the tracker sized from the
@@ -79,17 +79,24 @@ class WindowedLeastSquares:
 
     def add(self, y: np.ndarray, nuisance: np.ndarray, regressors: np.ndarray) -> bool:
         """One window: observations y (n,), nuisance columns (n, q), global regressors (n, p).
-        False (and nothing learnt) when the window's own fit rejects the model."""
-        full = np.hstack([nuisance, regressors])
-        coef = np.linalg.lstsq(full, y, rcond=None)[0]
-        dof = len(y) - full.shape[1]
-        chi2 = float(np.sum((y - full @ coef) ** 2)) / self.noise_var
-        if dof <= 0 or chi2 > dof + _OUTLIER_SIGMAS * math.sqrt(2.0 * dof):
-            self.rejected += 1
-            return False
+        False (and nothing learnt) when the window is not what the model predicts: its
+        residual from the current estimate, the nuisance projected out, is tested by χ²
+        against the noise and the estimate's own uncertainty (a tap, a hard stop)."""
         basis = np.linalg.qr(nuisance)[0]
         regressors_p = regressors - basis @ (basis.T @ regressors)
         y_p = y - basis @ (basis.T @ y)
+        residual = y_p - regressors_p @ self.mean
+        # (σ²I + Φ Σ Φᵀ)⁻¹ by Woodbury: p × p solves only
+        projected = regressors_p.T @ residual
+        inner = self.information + regressors_p.T @ regressors_p / self.noise_var
+        chi2 = (
+            float(residual @ residual) / self.noise_var
+            - float(projected @ np.linalg.solve(inner, projected)) / self.noise_var**2
+        )
+        dof = len(y) - nuisance.shape[1]
+        if dof <= 0 or chi2 > dof + _OUTLIER_SIGMAS * math.sqrt(2.0 * dof):
+            self.rejected += 1
+            return False
         self.information += regressors_p.T @ regressors_p / self.noise_var
         self.vector += regressors_p.T @ y_p / self.noise_var
         self.windows += 1
