@@ -12,6 +12,7 @@ floor is ``core.floor`` (via ``assembly.plant_floor``); the figures ``core.metri
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import statistics
 import sys
@@ -30,7 +31,7 @@ from ballbeam.core.metrics import (
     inside_from,
     outside_rest_band,
 )
-from ballbeam.core.replanning import ClosedLoopRun, run_closed_loop
+from ballbeam.core.replanning import ClosedLoopRun, Settings, run_closed_loop
 from ballbeam.errors import BallbeamError
 
 REPO = Path(__file__).resolve().parents[1]
@@ -61,7 +62,7 @@ def _after_tap(config: Config, run: ClosedLoopRun, target: float) -> dict[str, A
 
 
 def one_run(
-    overrides: list[str], extra_s: float = EXTRA_S
+    overrides: list[str], extra_s: float = EXTRA_S, settings: dict[str, Any] | None = None
 ) -> tuple[dict[str, Any], ClosedLoopRun]:
     config = load_config(PAPER, overrides)
     target = config.task.target_m
@@ -77,6 +78,11 @@ def one_run(
         seed=config.plant.seed,
         substeps=config.plant.physics_substeps,
         targets=((0.0, target),),
+        settings=Settings(
+            encoder_step_rad=params.encoder_step_rad,
+            position_noise_m=params.position_noise_m,
+            **(settings or {}),
+        ),
     )
     until = run.time_s < taps[0][0] if taps else np.ones(len(run.time_s), dtype=bool)
     outside = outside_rest_band(run.states[until], target)
@@ -138,11 +144,29 @@ def plot(run: ClosedLoopRun, path: str, title: str) -> None:
     fig.savefig(path, dpi=70)
 
 
-def _row(overrides: list[str]) -> dict[str, Any]:
+def _row(args: tuple[list[str], dict[str, Any]]) -> dict[str, Any]:
+    overrides, settings = args
     try:
-        return one_run(overrides)[0]
+        return one_run(overrides, settings=settings)[0]
     except BallbeamError as error:
         return {"overrides": overrides, "error": str(error), "rest_floor": math.inf}
+
+
+def parse_settings(items: list[str]) -> dict[str, Any]:
+    """``name=value`` pairs for core.replanning.Settings (values as JSON)."""
+    known = set(Settings.__dataclass_fields__)
+    parsed: dict[str, Any] = {}
+    for item in items:
+        name, _, value = item.partition("=")
+        if name not in known:
+            raise BallbeamError(f"--setting {item!r}: no such setting")
+        try:
+            parsed[name] = json.loads(value)
+        except json.JSONDecodeError as error:
+            raise BallbeamError(f"--setting {item!r}: the value is not JSON") from error
+        if isinstance(parsed[name], list):
+            parsed[name] = tuple(parsed[name])
+    return parsed
 
 
 def print_row(row: dict[str, Any]) -> None:
@@ -217,11 +241,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--draw-seed", type=int, default=1)
     parser.add_argument("--seeds", type=int, default=2)
     parser.add_argument("--processes", type=int, default=2)
+    parser.add_argument("--setting", action="append", default=[],
+                        help="a controller setting, name=JSON value (core.replanning.Settings)")
     args = parser.parse_args(argv)
+    try:
+        settings = parse_settings(args.setting)
+    except BallbeamError as error:
+        print(f"replanning_candidate: {error}", file=sys.stderr)
+        return 2
     print(HEADER)
     if not args.matrix:
         try:
-            row, run = one_run(args.set)
+            row, run = one_run(args.set, settings=settings)
         except BallbeamError as error:
             print(f"replanning_candidate: {error}", file=sys.stderr)
             return 2
@@ -232,7 +263,7 @@ def main(argv: list[str] | None = None) -> int:
     cases = matrix(args.draw_seed, args.seeds)
     with Pool(args.processes) as pool:
         rows = []
-        for row in pool.imap(_row, cases):
+        for row in pool.imap(_row, [(case, settings) for case in cases]):
             print_row(row)
             rows.append(row)
     ratios = [r["rest_floor"] for r in rows]
