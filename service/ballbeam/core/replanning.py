@@ -1,0 +1,705 @@
+"""Issue 27's candidate controller: identify the plant, re-plan to its own limit, from any state
+to any target. Pure (no I/O); offline only so far (``ballbeam run`` still uses ``control.py``).
+A measured experiment, not yet at issue 27's bounds: docs/decisions.md ("the second
+candidate") has its figures and what is left.
+
+Each 1 ms cycle:
+
+* **Identification** (``WindowedLeastSquares``): the servo's α (volts → acceleration), its pole a
+  and c = α·d (d the dead zone) from the encoder, and the ball's γ from the encoder and the
+  position sensor, each by least squares on the *integral* form of its model over short
+  windows (no derivative of a quantized signal is taken)::
+
+      θ(t) − θ(0) = θ̇(0)·t − a ∫(θ − θ(0)) + α ∫∫u − c ∫∫sign u        (|u| above any d)
+      x(t) = x(0) + ẋ(0)·t + γ ∫∫θ
+
+  The initial conditions of each window are nuisance parameters, projected out; the windows'
+  information adds up, starting from a Gaussian prior (the design values, broad), so the
+  estimate always has a covariance: the controller's margins are read from it. A window the
+  current estimate does not predict (a tap, a hard stop) is left out by a χ² test.
+* **Plan**: minimum-time arcs (``planning.arcs``) of the *identified* model, in drive units
+  (the voltage past the dead zone). The usable drive is (5 V · α̂ − ĉ − z·σ) / α̂: the lower
+  confidence bound of the full-voltage drive, less a reserve for the tracker sized from the
+  noise its correction carries. Every 10 ms the remaining plan is re-solved warm from the
+  plan's own servo state and the estimated ball (the servo's small errors are the tracker's).
+  A re-plan that adds arcs (a detour) is taken only when the ball is off by far more than the
+  estimate's noise; a tap or a new target is far, and is planned from the state then.
+* **Track**: drive = plan drive + K (plan state − estimate), K a discrete LQR of the identified
+  model.
+* **Terminal regulator**: in the plan's last stroke, once the error is inside the terminal
+  LQR's invariant ellipse (the Lyapunov level set on which its drive stays within the limit),
+  the LQR takes over; it hands back to a fresh plan only if the state leaves a larger ellipse.
+* **Safety filter**: the angle barrier of ``guard`` (hard barrier only), built for the
+  identified motor at its lower drive bound.
+* **Dead-zone compensation**: u = v + d̂·clip(v / w, −1, 1): a ramp through zero whose width w
+  is twice the standard deviation the estimate's noise gives the terminal drive, so noise does
+  not flip ±d̂.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import scipy.linalg
+
+from ballbeam.core.guard import AngleGuard, guarded_voltage, make_angle_guard, make_soft_cap
+from ballbeam.core.model import BALL_POSITION, THETA, LinearModel, as_row4
+from ballbeam.core.observer import design_observer
+from ballbeam.core.planning.arcs import ArcPlan, plan_arcs, replan
+from ballbeam.core.planning.lag_hold import _Params
+from ballbeam.core.plant import (
+    EmulatedPlant,
+    PlantPhysics,
+    command_as_received,
+    initial_noise,
+    next_noise,
+    read_sensors,
+)
+from ballbeam.errors import ConfigError, PlanningError
+
+_C = np.array([[57.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 100.0]])
+# A window is left out when its own best fit leaves χ² beyond dof + this many standard
+# deviations of χ² (√(2·dof)).
+_OUTLIER_SIGMAS = 6.0
+
+
+class WindowedLeastSquares:
+    """Bayesian least squares of global parameters over windows, each window with its own
+    nuisance parameters (its initial conditions) projected out. Starts from a Gaussian prior."""
+
+    def __init__(self, prior_mean: np.ndarray, prior_std: np.ndarray, noise_std: float) -> None:
+        prior_std = np.asarray(prior_std, dtype=float)
+        if not (noise_std > 0.0 and np.all(prior_std > 0.0)):
+            raise ConfigError("identification needs positive prior and noise deviations")
+        self.information = np.diag(1.0 / prior_std**2)
+        self.vector = self.information @ np.asarray(prior_mean, dtype=float)
+        self.noise_var = noise_std**2
+        self.windows = 0
+        self.rejected = 0
+
+    def add(self, y: np.ndarray, nuisance: np.ndarray, regressors: np.ndarray) -> bool:
+        """One window: observations y (n,), nuisance columns (n, q), global regressors (n, p).
+        False (and nothing learnt) when the window is not what the model predicts: its
+        residual from the current estimate, the nuisance projected out, is tested by χ²
+        against the noise and the estimate's own uncertainty (a tap, a hard stop)."""
+        basis = np.linalg.qr(nuisance)[0]
+        regressors_p = regressors - basis @ (basis.T @ regressors)
+        y_p = y - basis @ (basis.T @ y)
+        residual = y_p - regressors_p @ self.mean
+        # (σ²I + Φ Σ Φᵀ)⁻¹ by Woodbury: p × p solves only
+        projected = regressors_p.T @ residual
+        inner = self.information + regressors_p.T @ regressors_p / self.noise_var
+        chi2 = (
+            float(residual @ residual) / self.noise_var
+            - float(projected @ np.linalg.solve(inner, projected)) / self.noise_var**2
+        )
+        dof = len(y) - nuisance.shape[1]
+        if dof <= 0 or chi2 > dof + _OUTLIER_SIGMAS * math.sqrt(2.0 * dof):
+            self.rejected += 1
+            return False
+        self.information += regressors_p.T @ regressors_p / self.noise_var
+        self.vector += regressors_p.T @ y_p / self.noise_var
+        self.windows += 1
+        return True
+
+    @property
+    def mean(self) -> np.ndarray:
+        result: np.ndarray = np.linalg.solve(self.information, self.vector)
+        return result
+
+    @property
+    def covariance(self) -> np.ndarray:
+        result: np.ndarray = np.linalg.inv(self.information)
+        return result
+
+
+def _double_integral_of_held(values: np.ndarray, period_s: float) -> np.ndarray:
+    """∫∫ of a zero-order-held sequence (n,) at the n + 1 sample times: exact."""
+    first = np.concatenate([[0.0], np.cumsum(values) * period_s])
+    increments = period_s * first[:-1] + 0.5 * period_s**2 * values
+    return np.concatenate([[0.0], np.cumsum(increments)])
+
+
+def _integral_of_sampled(values: np.ndarray, period_s: float) -> np.ndarray:
+    """∫ of a sampled signal (n,) at its sample times (trapezoids)."""
+    return np.concatenate([[0.0], np.cumsum(0.5 * period_s * (values[1:] + values[:-1]))])
+
+
+def servo_window(
+    theta_rad: np.ndarray, command_v: np.ndarray, period_s: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(y, nuisance, regressors) of the servo over one window: θ at n + 1 samples, the n
+    commands held between them. Regressors for (a, α, c = α·d)."""
+    n = len(command_v)
+    t = np.arange(n + 1) * period_s
+    y = theta_rad - theta_rad[0]
+    nuisance = np.column_stack([np.ones(n + 1), t])
+    regressors = np.column_stack([
+        -_integral_of_sampled(y, period_s),
+        _double_integral_of_held(command_v, period_s),
+        -_double_integral_of_held(np.sign(command_v), period_s),
+    ])
+    return y, nuisance, regressors
+
+
+def ball_window(
+    theta_rad: np.ndarray, position_m: np.ndarray, period_s: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(y, nuisance, regressors) of the ball over one window of samples (n,): regressor for γ."""
+    n = len(position_m)
+    t = np.arange(n) * period_s
+    nuisance = np.column_stack([np.ones(n), t])
+    once = _integral_of_sampled(theta_rad, period_s)
+    twice = _integral_of_sampled(once, period_s)
+    return np.asarray(position_m, dtype=float), nuisance, twice[:, None]
+
+
+@dataclass(frozen=True)
+class Identified:
+    """The plant as identified, with standard deviations: θ̈ = −a θ̇ + α·drive, ẍ = γ θ,
+    drive = u − d·sign u for |u| > d."""
+
+    pole_per_s: float
+    alpha: float
+    deadzone_v: float
+    gamma: float
+    covariance_motor: np.ndarray  # of (a, α, c = α·d)
+    gamma_std: float
+
+    def drive_std(self, command_v: float) -> float:
+        """σ of α·(u − d) at a command u > d, in volts of drive (/α̂)."""
+        g = np.array([0.0, command_v, -1.0])
+        return math.sqrt(float(g @ self.covariance_motor @ g)) / self.alpha
+
+    @property
+    def deadzone_std_v(self) -> float:
+        c = self.alpha * self.deadzone_v
+        g = np.array([0.0, -c / self.alpha**2, 1.0 / self.alpha])
+        return math.sqrt(float(g @ self.covariance_motor @ g))
+
+    @property
+    def alpha_std(self) -> float:
+        return math.sqrt(float(self.covariance_motor[1, 1]))
+
+    @property
+    def params(self) -> _Params:
+        return _Params(self.pole_per_s, self.alpha, self.gamma)
+
+    def model(self) -> LinearModel:
+        return LinearModel.from_gains(self.alpha, self.pole_per_s, self.gamma, _C)
+
+
+@dataclass(frozen=True)
+class Settings:
+    """The candidate's settings (each with its reason)."""
+
+    period_s: float = 1e-3
+    voltage_limit_v: float = 5.0  # the command's bound
+    theta_limit_rad: float = math.radians(52.0)  # the servo must never pass it
+    # Sensor noise (the identification's and the observer's noise model).
+    encoder_step_rad: float = 2.0 * math.pi / 4096.0
+    position_noise_m: float = 2e-4
+    # Prior of the identification: the design's gains, broad enough for the plants in range.
+    prior_alpha: float = 108.896
+    prior_pole_per_s: float = 58.466
+    prior_gamma: float = -0.41218
+    # (a uniform spread over gains 0.8–1.2 and dead zones 0–0.4 V has these deviations)
+    prior_relative_std: float = 0.12
+    prior_deadzone_v: float = 0.2
+    prior_deadzone_std_v: float = 0.12
+    # What the identified model leaves out, as the observer's process noise beyond the
+    # identified gains' own uncertainty: drive [V] and ball acceleration [m/s²].
+    unmodelled_drive_v: float = 0.05
+    unmodelled_ball_m_s2: float = 0.01
+    confidence_z: float = 3.0  # margins are z standard deviations
+    servo_window: int = 40  # samples a servo window
+    ball_window: int = 200  # samples a ball window
+    identify_above_v: float = 0.5  # servo windows need every |u| above any dead zone in range
+    identify_every: int = 100  # cycles between model updates
+    replan_every: int = 10  # cycles between re-plans
+    model_change: float = 0.01  # a relative change of the identified model that re-plans cold
+    plan_theta_margin_rad: float = math.radians(0.3)  # the plan's angle stays this inside
+    detour_position_m: float = 2e-3  # a re-plan that adds arcs only past this ball error ...
+    detour_speed_m_s: float = 1e-2  # ... or this
+    track_ball: bool = True  # the tracker corrects the ball too (else the servo only)
+    detour_sigmas: float | None = None  # re-plans adding arcs past this Mahalanobis distance
+    track_q: tuple[float, float, float, float] = (10.0, 0.0, 0.0, 1e4)
+    track_r: float = 0.01
+    terminal_q: tuple[float, float, float, float] = (100.0, 0.0, 0.0, 3e4)
+    terminal_r: float = 1.0
+    soft_zone_gain_per_s: float = 250.0  # the soft cap: allowed rate = gain × gap near it
+    soft_rate_gain_per_s: float = 40.0  # how hard the rate is pulled back to the allowed rate
+    rest_band_m: float = 5e-4  # the task's rest band: the ball within this of the target
+    terminal_exit_factor: float = 25.0  # the terminal LQR hands back beyond this × its level
+
+
+def dlqr(
+    Ad: np.ndarray, Bd: np.ndarray, q: tuple[float, ...], r: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Discrete LQR: gain K (4,) and the Riccati solution P (4, 4)."""
+    Q, R = np.diag(q), np.array([[r]])
+    P = scipy.linalg.solve_discrete_are(Ad, Bd, Q, R)
+    gain: np.ndarray = np.linalg.solve(R + Bd.T @ P @ Bd, Bd.T @ P @ Ad)[0]
+    return gain, P
+
+
+@dataclass
+class _Design:
+    """Everything derived from one identified model."""
+
+    identified: Identified
+    Ad: np.ndarray
+    bd: np.ndarray
+    L: np.ndarray
+    K: np.ndarray
+    K_terminal: np.ndarray
+    P_terminal: np.ndarray
+    terminal_level: float
+    drive_limit_v: float  # the plan's drive
+    drive_max_v: float  # the drive the guard may use (lower confidence bound at full command)
+    ramp_v: float  # dead-zone compensation ramp half-width (terminal regulator)
+    ramp_tracking_v: float  # ... while tracking a plan
+    ball_information: np.ndarray  # inverse covariance of the estimate's (ẋ, x) error
+    guard: AngleGuard
+    reserve_v: float
+
+
+def _design(identified: Identified, s: Settings) -> _Design:
+    discrete = identified.model().discretize(s.period_s)
+    Ad, Bd = discrete.Ad, discrete.Bd
+    z = s.confidence_z
+    U = s.voltage_limit_v
+    observer = design_observer(
+        discrete,
+        input_noise_v=math.hypot(identified.drive_std(U), s.unmodelled_drive_v),
+        ball_noise_m_s2=math.hypot(
+            identified.gamma_std * s.theta_limit_rad, s.unmodelled_ball_m_s2
+        ),
+        angle_noise_rad=s.encoder_step_rad / math.sqrt(12.0),
+        position_noise_m=s.position_noise_m,
+    )
+    if s.track_ball:
+        K, _ = dlqr(Ad, Bd, s.track_q, s.track_r)
+    else:  # the ball's errors are the re-plans': the tracker keeps the servo on the plan
+        K = np.zeros(4)
+        K[:2] = dlqr(Ad[:2, :2], Bd[:2], s.track_q[:2], s.track_r)[0]
+    K_t, P_t = dlqr(Ad, Bd, s.terminal_q, s.terminal_r)
+    drive_max = U - identified.deadzone_v - z * identified.drive_std(U)
+    # Tracker's reserve: z σ of the drive the estimate's noise puts into the correction.
+    reserve = z * math.sqrt(float(K @ observer.P_estimate @ K))
+    ramp = 2.0 * math.sqrt(float(K_t @ observer.P_estimate @ K_t))
+    ramp_tracking = 2.0 * math.sqrt(float(K @ observer.P_estimate @ K))
+    ball_cov = observer.P_estimate[2:, 2:]
+    # The terminal set: the largest level set of the terminal LQR's Lyapunov function on which
+    # its drive stays within the limit and the ball, less z σ of the estimate's error, within
+    # the rest band (so once in it, the ball never leaves the band; the servo's band is left
+    # to the regulator's convergence: a set inside both is too thin to be entered).
+    P_inv = np.linalg.inv(P_t)
+    sigma = np.sqrt(np.diag(observer.P_estimate))
+    level = min(
+        drive_max**2 / float(K_t @ P_inv @ K_t),
+        (s.rest_band_m - z * sigma[BALL_POSITION]) ** 2 / P_inv[BALL_POSITION, BALL_POSITION],
+    )
+    theta_sigma = math.sqrt(float(observer.P_estimate[THETA, THETA]))
+    # the estimate's error: half an encoder count of bias when the servo slows, and noise
+    guard_limit = s.theta_limit_rad - 0.5 * s.encoder_step_rad - z * theta_sigma
+    # the smooth cap (a rate loop onto the braking curve) acts first, so the tracker pushing
+    # the servo toward the limit is met continuously, not by the dead-beat barrier
+    soft = make_soft_cap(
+        theta_limit_rad=guard_limit - s.encoder_step_rad,
+        alpha=identified.alpha,
+        alpha_beta=identified.pole_per_s,
+        brake_v=drive_max,
+        zone_gain_per_s=s.soft_zone_gain_per_s,
+        rate_gain_per_s=s.soft_rate_gain_per_s,
+    )
+    guard = make_angle_guard(
+        theta_limit_rad=guard_limit,
+        soft=soft,
+        alpha=identified.alpha,
+        alpha_beta=identified.pole_per_s,
+        brake_v=drive_max,
+        voltage_limit_v=drive_max,
+        Ad=Ad,
+        Bd=Bd,
+    )
+    return _Design(
+        identified=identified,
+        Ad=Ad,
+        bd=Bd[:, 0].copy(),
+        L=observer.L,
+        K=K,
+        K_terminal=K_t,
+        P_terminal=P_t,
+        terminal_level=level,
+        drive_limit_v=max(0.5, drive_max - reserve),
+        drive_max_v=drive_max,
+        ramp_v=ramp,
+        ramp_tracking_v=ramp_tracking,
+        ball_information=np.linalg.inv(ball_cov),
+        guard=guard,
+        reserve_v=reserve,
+    )
+
+
+@dataclass
+class CycleRecord:
+    """What one cycle did (for plots and metrics)."""
+
+    command_v: float
+    plan_state: np.ndarray
+    plan_drive_v: float  # the drive asked (plan, correction, safety filter)
+    terminal: bool
+    feedforward_v: float = 0.0  # the plan's own drive (0 under the terminal regulator)
+    estimate: np.ndarray | None = None  # the state estimate the cycle used
+
+
+@dataclass
+class ReplanningController:
+    """The candidate controller. ``step`` takes one cycle's measurements and returns the
+    command; ``set_target`` changes the target (re-planned from the state then)."""
+
+    settings: Settings
+    initial_state: np.ndarray
+    target_m: float = 0.0
+    design: _Design = field(init=False)
+    estimate: np.ndarray = field(init=False)
+    plan: ArcPlan | None = field(init=False, default=None)
+    plan_start_cycle: int = field(init=False, default=0)
+    terminal: bool = field(init=False, default=False)
+    cycle: int = field(init=False, default=0)
+    replans: int = field(init=False, default=0)
+    missed: int = field(init=False, default=0)
+    cold_plans: int = field(init=False, default=0)
+    near_plans: int = field(init=False, default=0)
+    _last_drive_v: float = field(init=False, default=0.0)
+    _theta: list[float] = field(init=False, default_factory=list)
+    _position: list[float] = field(init=False, default_factory=list)
+    _command: list[float] = field(init=False, default_factory=list)
+    _servo_from: int = field(init=False, default=0)
+    _ball_from: int = field(init=False, default=0)
+
+    def __post_init__(self) -> None:
+        s = self.settings
+        rel = s.prior_relative_std
+        prior_c = s.prior_alpha * s.prior_deadzone_v
+        self.motor_ls = WindowedLeastSquares(
+            np.array([s.prior_pole_per_s, s.prior_alpha, prior_c]),
+            np.array([
+                rel * s.prior_pole_per_s,
+                rel * s.prior_alpha,
+                math.hypot(s.prior_alpha * s.prior_deadzone_std_v, rel * prior_c),
+            ]),
+            s.encoder_step_rad / math.sqrt(12.0),
+        )
+        self.ball_ls = WindowedLeastSquares(
+            np.array([s.prior_gamma]), np.array([rel * abs(s.prior_gamma)]), s.position_noise_m
+        )
+        self.design = _design(self._identified(), s)
+        self.estimate = np.array(self.initial_state, dtype=float)
+
+    def _identified(self) -> Identified:
+        a, alpha, c = self.motor_ls.mean
+        cov = self.motor_ls.covariance
+        return Identified(
+            pole_per_s=float(max(a, 1.0)),
+            alpha=float(max(alpha, 1.0)),
+            deadzone_v=float(min(max(c / alpha, 0.0), self.settings.voltage_limit_v / 2)),
+            gamma=float(self.ball_ls.mean[0]),
+            covariance_motor=cov,
+            gamma_std=math.sqrt(float(self.ball_ls.covariance[0, 0])),
+        )
+
+    @property
+    def identified(self) -> Identified:
+        return self.design.identified
+
+    def set_target(self, target_m: float) -> None:
+        self.target_m = float(target_m)
+        self.plan = None
+        self.terminal = False
+
+    # --- one cycle --------------------------------------------------------------------
+
+    def step(self, theta_rad: float, position_m: float) -> CycleRecord:
+        s = self.settings
+        d = self.design
+        y = _C @ np.array([theta_rad, 0.0, 0.0, position_m])
+        if self.cycle:
+            prior = d.Ad @ self.estimate + d.bd * self._last_drive_v
+            self.estimate = prior + d.L @ (y - _C @ prior)
+        else:
+            self.estimate = np.array(
+                [theta_rad, self.initial_state[1], self.initial_state[2], position_m]
+            )
+        self._theta.append(theta_rad)
+        self._position.append(position_m)
+        self._learn()
+        if self.cycle and self.cycle % s.identify_every == 0:
+            self.design = d = _design(self._identified(), s)
+        record = self._drive()
+        command = self._compensate(record.plan_drive_v)
+        record.command_v = command
+        self._command.append(command)
+        self._last_drive_v = _dead_zone(command, d.identified.deadzone_v)
+        self.cycle += 1
+        return record
+
+    def _learn(self) -> None:
+        s = self.settings
+        k = len(self._theta)
+        # servo windows: samples from _servo_from .. k-1 with the commands between them
+        if k - self._servo_from > s.servo_window:
+            start = self._servo_from
+            commands = np.array(self._command[start : k - 1])
+            thetas = np.array(self._theta[start:k])
+            if np.all(np.abs(commands) >= s.identify_above_v):
+                self.motor_ls.add(*servo_window(thetas, commands, s.period_s))
+            self._servo_from = k - 1
+        if k - self._ball_from >= s.ball_window:
+            start = self._ball_from
+            self.ball_ls.add(
+                *ball_window(
+                    np.array(self._theta[start:k]), np.array(self._position[start:k]), s.period_s
+                )
+            )
+            self._ball_from = k
+
+    def _error(self) -> np.ndarray:
+        e = self.estimate.copy()
+        e[BALL_POSITION] -= self.target_m
+        return e
+
+    def _in_terminal_set(self, factor: float = 1.0) -> bool:
+        e = self._error()
+        return float(e @ self.design.P_terminal @ e) <= factor * self.design.terminal_level
+
+    def _plan_from_estimate(self, near: bool = False, state: np.ndarray | None = None) -> None:
+        """A fresh plan from the estimate (or ``state``); ``near``: close to the target, where
+        the four-arc guess solves it directly (no grid plan)."""
+        d = self.design
+        s = self.settings
+        state = (self.estimate if state is None else state).copy()
+        limit = s.theta_limit_rad - s.plan_theta_margin_rad
+        state[THETA] = float(np.clip(state[THETA], -limit, limit))
+        keep = self.plan
+        if near:
+            p = d.identified.params
+            empty = ArcPlan((), (), (), (0.0, 0.0, 0.0, 0.0), self.target_m, d.drive_limit_v,
+                            limit, p.pole_per_s, p.alpha, p.gamma)
+            found = replan(empty, 0.0, state, target_m=self.target_m, params=p)
+            if found is not None:
+                self.plan = found
+                self.plan_start_cycle = self.cycle
+                self.near_plans += 1
+                return
+        try:
+            self.plan = plan_arcs(
+                d.identified.model(),
+                state,
+                target_m=self.target_m,
+                voltage_limit_v=d.drive_limit_v,
+                theta_max_rad=limit,
+            )
+        except PlanningError:
+            if keep is None:
+                self.plan = None
+            return
+        finally:
+            self.cold_plans += 1
+        self.plan_start_cycle = self.cycle
+
+    def _elapsed(self) -> float:
+        return (self.cycle - self.plan_start_cycle) * self.settings.period_s
+
+    def _drive(self) -> CycleRecord:
+        s = self.settings
+        d = self.design
+        if self.terminal and not self._in_terminal_set(s.terminal_exit_factor):
+            self.terminal = False
+            self.plan = None
+            self._plan_from_estimate(near=True)
+        if not self.terminal and self.plan is None:
+            if self.cycle and self._in_terminal_set():
+                self.terminal = True
+            else:
+                self._plan_from_estimate()
+        if not self.terminal and self.plan is not None:
+            self._maybe_replan()
+        plan = self.plan
+        if not self.terminal and plan is not None:
+            elapsed = self._elapsed()
+            edges = plan.switch_times_s
+            last_stroke = elapsed >= edges[-2] if len(edges) >= 2 else True
+            if (last_stroke and self._in_terminal_set()) or elapsed >= plan.duration_s:
+                if self._in_terminal_set():
+                    self.terminal = True
+                else:  # outside the terminal set: a (small) minimum-time move to it
+                    self._plan_from_estimate(near=True)
+                    plan = self.plan
+        if self.terminal or plan is None:
+            drive = -float(d.K_terminal @ self._error())
+            reference = np.array([0.0, 0.0, 0.0, self.target_m])
+            feedforward = 0.0
+        else:
+            sample = plan.sample(np.array([self._elapsed()]))
+            reference = sample.states[0].copy()
+            reference[BALL_POSITION] += plan.target_m
+            feedforward = float(sample.input_v[0])
+            drive = feedforward + float(d.K @ (reference - self.estimate))
+        if self.terminal:
+            # at rest every drive smaller than the estimate's noise is a reaction to noise:
+            # a soft threshold (continuous) leaves it out
+            drive = math.copysign(max(abs(drive) - d.ramp_v, 0.0), drive)
+        drive = guarded_voltage(d.guard, as_row4(self.estimate), drive)
+        return CycleRecord(0.0, reference, drive, self.terminal, feedforward, self.estimate.copy())
+
+    def _maybe_replan(self) -> None:
+        s = self.settings
+        plan = self.plan
+        assert plan is not None
+        if (self.cycle - self.plan_start_cycle) % s.replan_every:
+            return
+        elapsed = self._elapsed()
+        edges = plan.switch_times_s
+        if len(edges) >= 2 and elapsed >= edges[-2]:
+            return  # the last stroke: the terminal regulator's, not a re-plan's
+        on_plan = plan.sample(np.array([elapsed])).states[0]
+        est = self.estimate
+        d = self.design
+        if _moved(plan, d.identified.params, d.drive_limit_v, s.model_change):
+            # the identified model moved: the plan is re-solved for it, warm if Newton finds
+            # the root from the old durations, else afresh
+            start = np.array([on_plan[0], on_plan[1], est[2], est[3]])
+            warm = replace(plan, voltage_limit_v=d.drive_limit_v)
+            new = replan(warm, elapsed, start, target_m=self.target_m, params=d.identified.params)
+            self.replans += 1
+            if new is not None:
+                self.plan, self.plan_start_cycle = new, self.cycle
+            else:
+                self._plan_from_estimate(state=start)
+            return
+        # the plan's own servo state, the estimated ball (absolute position)
+        from_state = np.array([on_plan[0], on_plan[1], est[2], est[3]])
+        warm = replace(plan, voltage_limit_v=d.drive_limit_v)
+        new = replan(warm, elapsed, from_state, target_m=self.target_m, params=d.identified.params)
+        self.replans += 1
+        if s.detour_sigmas is None:
+            far = abs(est[3] - (on_plan[3] + plan.target_m)) > s.detour_position_m or abs(
+                est[2] - on_plan[2]
+            ) > s.detour_speed_m_s
+        else:
+            miss = np.array([est[2] - on_plan[2], est[3] - on_plan[3] - plan.target_m])
+            far = float(miss @ d.ball_information @ miss) > s.detour_sigmas**2
+        if new is None:
+            self.missed += 1
+            if far:
+                self._plan_from_estimate()
+            return
+        if len(new.input_v) <= len(plan.shifted(elapsed)[0]) or far:
+            self.plan = new
+            self.plan_start_cycle = self.cycle
+
+    def _compensate(self, drive_v: float) -> float:
+        d = self.design
+        dz = d.identified.deadzone_v
+        ramp = max(d.ramp_v if self.terminal else d.ramp_tracking_v, 1e-6)
+        command = drive_v + dz * max(-1.0, min(1.0, drive_v / ramp))
+        limit = self.settings.voltage_limit_v
+        return max(-limit, min(limit, command))
+
+
+def _moved(plan: ArcPlan, params: _Params, drive_v: float, tolerance: float) -> bool:
+    """Whether the model or the drive a plan was made with differ from these by more than
+    ``tolerance`` (relative)."""
+    pairs = (
+        (plan.voltage_limit_v, drive_v), (plan.alpha, params.alpha),
+        (plan.pole_per_s, params.pole_per_s), (plan.gamma, params.gamma),
+    )
+    return any(abs(new - old) > tolerance * abs(old) for old, new in pairs)
+
+
+def _dead_zone(command_v: float, deadzone_v: float) -> float:
+    if abs(command_v) <= deadzone_v:
+        return 0.0
+    return command_v - math.copysign(deadzone_v, command_v)
+
+
+@dataclass(frozen=True)
+class ClosedLoopRun:
+    """A closed-loop run of the candidate on the emulated plant, one row a cycle."""
+
+    time_s: np.ndarray  # (n,) end of each cycle
+    states: np.ndarray  # (n, 4) true state at the end of each cycle
+    peak_theta_rad: np.ndarray  # (n,) largest |θ| over the cycle's physics steps
+    command_v: np.ndarray  # (n,)
+    plan_drive_v: np.ndarray  # (n,) the drive asked before compensation
+    feedforward_v: np.ndarray  # (n,) the plan's own drive
+    reference: np.ndarray  # (n, 4)
+    estimate: np.ndarray  # (n, 4) the estimate each cycle used (of the state at its start)
+    terminal: np.ndarray  # (n,) bool
+    target_m: np.ndarray  # (n,)
+    controller: ReplanningController
+
+
+def run_closed_loop(
+    plant: EmulatedPlant,
+    initial_state: np.ndarray,
+    duration_s: float,
+    *,
+    seed: int,
+    settings: Settings | None = None,
+    substeps: int = 10,
+    targets: tuple[tuple[float, float], ...] = ((0.0, 0.0),),
+) -> ClosedLoopRun:
+    """The candidate on ``plant`` from ``initial_state`` for ``duration_s``; ``targets``: a
+    step schedule ((time_s, target_m), ...) from 0. Taps are the plant's own."""
+    s = settings or Settings(
+        encoder_step_rad=plant.encoder_step_rad, position_noise_m=plant.position_noise_m
+    )
+    rng = np.random.default_rng(seed)
+    physics = PlantPhysics(plant)
+    state = np.array(initial_state, dtype=float)
+    noise = initial_noise(plant, rng)
+    schedule = sorted(targets)
+    controller = ReplanningController(s, state.copy(), target_m=schedule[0][1])
+    n = round(duration_s / s.period_s)
+    states = np.zeros((n, 4))
+    peaks, commands, drives, feedforward = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
+    references, terminal, target = np.zeros((n, 4)), np.zeros(n, dtype=bool), np.zeros(n)
+    estimates = np.zeros((n, 4))
+    next_target = 1
+    for k in range(n):
+        if next_target < len(schedule) and k * s.period_s >= schedule[next_target][0] - 1e-12:
+            controller.set_target(schedule[next_target][1])
+            next_target += 1
+        reading = read_sensors(plant, state, noise)
+        record = controller.step(
+            reading.angle_counts * plant.encoder_step_rad,
+            reading.position_counts * plant.adc_step_m,
+        )
+        before = abs(float(state[THETA]))
+        state, peak = physics.advance_with_peak(
+            state, command_as_received(record.command_v), substeps, from_step=k * substeps
+        )
+        noise = next_noise(plant, noise, rng)
+        states[k], peaks[k] = state, max(before, peak)
+        commands[k], drives[k] = record.command_v, record.plan_drive_v
+        feedforward[k] = record.feedforward_v
+        references[k], terminal[k] = record.plan_state, record.terminal
+        estimates[k], target[k] = record.estimate, controller.target_m
+    return ClosedLoopRun(
+        time_s=(np.arange(n) + 1) * s.period_s,
+        states=states,
+        peak_theta_rad=peaks,
+        command_v=commands,
+        plan_drive_v=drives,
+        feedforward_v=feedforward,
+        reference=references,
+        estimate=estimates,
+        terminal=terminal,
+        target_m=target,
+        controller=controller,
+    )
