@@ -24,6 +24,7 @@ from ballbeam.runtime.process import (
     configure_logging,
     resolve_config_argument,
 )
+from ballbeam.runtime.stop import INTERRUPT
 
 EXIT_USAGE = 2
 
@@ -432,6 +433,7 @@ def command_sweep(args: argparse.Namespace) -> int:
     output = Path(args.output) if args.output else (
         spec.output or Path("sweep-results") / spec.path.stem
     )
+    INTERRUPT.install()
     try:
         outcome = run_sweep(
             spec,
@@ -494,6 +496,7 @@ def command_tune(args: argparse.Namespace) -> int:
     output = Path(args.output) if args.output else (
         spec.output or Path("sweep-results") / spec.path.stem
     )
+    INTERRUPT.install()
     try:
         with dask_client(args.scheduler, args.workers) as client:
             outcome = run_tune(spec, output, client, progress=not args.json)

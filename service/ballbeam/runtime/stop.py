@@ -29,3 +29,30 @@ class StopFlag:
         signal.signal(signal.SIGINT, handler)
         signal.signal(signal.SIGTERM, handler)
         return self
+
+
+class RememberedInterrupt:
+    """SIGINT as KeyboardInterrupt, and remembered. Python raises it wherever the main thread
+    is, and where that is a callback the interpreter runs for a library (a garbage-collection
+    callback of Dask's), it is printed and dropped: the study would then run to its end.
+    Loops call :meth:`check` between units of work, which raises it again."""
+
+    def __init__(self) -> None:
+        self.received = False
+
+    def install(self) -> RememberedInterrupt:
+        def handler(_signum: int, _frame: FrameType | None) -> None:
+            self.received = True
+            raise KeyboardInterrupt
+
+        signal.signal(signal.SIGINT, handler)
+        return self
+
+    def check(self) -> None:
+        if self.received:
+            raise KeyboardInterrupt
+
+
+# The one SIGINT of a process (the CLI installs it for sweeps and tunings; not installed, it
+# never fires and check() does nothing).
+INTERRUPT = RememberedInterrupt()

@@ -16,6 +16,7 @@ from typing import Any
 from ballbeam.config import read_config_data
 from ballbeam.errors import ConfigError
 from ballbeam.files import replace_file
+from ballbeam.runtime.stop import INTERRUPT
 from ballbeam.studies.points import PointOutcome, PointTask, evaluate_batch, log_dir_for, warm_up
 from ballbeam.studies.spec import Point, SweepSpec, toml_value
 from ballbeam.studies.store import ResultStore, point_id
@@ -91,6 +92,7 @@ def run_points(
     with tqdm(total=len(tasks), unit="pt", desc=description, file=sys.stderr,
               disable=not progress, smoothing=0.1) as bar:
         for future in as_completed(futures):
+            INTERRUPT.check()
             group = futures[future]
             try:
                 outcomes: list[PointOutcome] = future.result()

@@ -57,6 +57,7 @@ from ballbeam.config import (
 )
 from ballbeam.errors import BallbeamError, ConfigError
 from ballbeam.files import replace_file
+from ballbeam.runtime.stop import INTERRUPT
 from ballbeam.studies.points import PointOutcome, PointTask, evaluate_batch, warm_up
 from ballbeam.studies.spec import SweepSpec, check_config_key, spec_from_mapping, toml_value
 from ballbeam.studies.store import point_id
@@ -476,6 +477,7 @@ def run_tune(
     with tqdm(total=max(spec.trials, done), initial=done, unit="trial", desc=spec.path.stem,
               file=sys.stderr, disable=not progress or not to_ask) as bar:
         for future in futures if to_ask else ():
+            INTERRUPT.check()
             number = owner.pop(future)
             trial, tasks, outcomes, remaining = pending[number]
             try:
