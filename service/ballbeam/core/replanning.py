@@ -385,6 +385,9 @@ class Settings:
     # unmodelled_ball_m_s2 at the angle limit), and the terminal regulator's noise threshold
     # from the filter's running covariance: the estimate at rest is as quiet as the rest is
     ball_noise_with_angle: bool = True
+    # the terminal regulator leaves out drives below its noise (a soft threshold); without
+    # it only the dead-zone compensation's ramp shapes the small drives
+    rest_threshold: bool = False
 
 
 def dlqr(
@@ -785,7 +788,7 @@ class ReplanningController:
             reference[BALL_POSITION] += plan.target_m
             feedforward = float(sample.input_v[0])
             drive = feedforward + float(d.K @ (reference - self.estimate))
-        if self.terminal:
+        if self.terminal and self.settings.rest_threshold:
             # at rest every drive smaller than the estimate's noise is a reaction to noise:
             # a soft threshold (continuous) leaves it out
             drive = math.copysign(max(abs(drive) - self._ramp_v(), 0.0), drive)
