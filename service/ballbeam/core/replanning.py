@@ -24,6 +24,14 @@ Each 1 ms cycle:
   plan's own servo state and the estimated ball (the servo's small errors are the tracker's).
   A re-plan that adds arcs (a detour) is taken only when the ball is off by far more than the
   estimate's noise; a tap or a new target is far, and is planned from the state then.
+* **Estimate** (``estimate_gamma``): a Kalman filter on (θ, θ̇, ẋ, x, δγ), δγ the error of the
+  design's γ: the ball's acceleration error δγ·θ is followed as θ swings (a fixed-gain observer
+  lags it by 1–2.5 mm/s through a stroke), γ is learnt from every sample and handed to the
+  design. What the model leaves out of the ball's acceleration is taken in proportion to |θ|
+  (``ball_noise_with_angle``): at rest the estimate is as quiet as the encoder allows, and the
+  terminal regulator needs no noise threshold.
+* **Re-shaping** (``reshape``, off: measured, not kept): where a time-optimal re-plan of the
+  same arcs has no root, the remaining arcs' inputs move within a headroom.
 * **Track**: drive = plan drive + K (plan state − estimate), K a discrete LQR of the identified
   model.
 * **Terminal regulator**: in the plan's last stroke, once the error is inside the terminal
@@ -387,7 +395,7 @@ class Settings:
     ball_noise_with_angle: bool = True
     # the terminal regulator leaves out drives below its noise (a soft threshold); without
     # it only the dead-zone compensation's ramp shapes the small drives
-    rest_threshold: bool = False
+    rest_threshold: bool = True
 
 
 def dlqr(
