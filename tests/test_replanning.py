@@ -3,6 +3,7 @@ plant's own gains, and the closed loop against the task's band and the angle lim
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import replace
 
@@ -194,3 +195,142 @@ def test_the_angle_limit_holds_at_every_physics_step_on_an_extreme_plant(
     assert float(np.max(run.peak_theta_rad)) <= math.radians(52.0)
     run = run_closed_loop(params, config.initial.state(), 3.0, seed=1)
     assert float(np.max(run.peak_theta_rad)) <= math.radians(52.0)
+
+
+def _arcs_end_by_expm(
+    model_alpha: float, pole: float, gamma: float, start: np.ndarray,
+    inputs: tuple[float, ...], durations: tuple[float, ...],
+) -> np.ndarray:
+    """The end state of held inputs by the matrix exponential of the continuous model with the
+    input as a fifth (constant) state: independent of the arcs' closed forms."""
+    import scipy.linalg
+
+    A = np.zeros((5, 5))
+    A[0, 1] = 1.0
+    A[1, 1], A[1, 4] = -pole, model_alpha
+    A[2, 0] = gamma
+    A[3, 2] = 1.0
+    state = np.append(np.asarray(start, dtype=float), 0.0)
+    for u, tau in zip(inputs, durations, strict=True):
+        state[4] = u
+        state = scipy.linalg.expm(A * tau) @ state
+    return state[:4]
+
+
+@functools.cache
+def _paper_plan():  # type: ignore[no-untyped-def]
+    """The design of the prior model and its plan from the paper's start (51° limit)."""
+    from ballbeam.core.planning.arcs import plan_arcs
+
+    d = ReplanningController(Settings(), np.zeros(4)).design
+    limit = math.radians(51.0)
+    plan = plan_arcs(
+        d.identified.model(), np.array([-limit, 0.0, 0.0, 0.195]), target_m=0.0,
+        voltage_limit_v=d.drive_limit_v, theta_max_rad=limit,
+    )
+    return d, plan
+
+
+@pytest.mark.parametrize(("dx_m", "dv_m_s"), [(0.0, 0.0), (1e-4, 0.0), (0.0, 1e-3)])
+def test_a_reshaped_remainder_ends_at_rest_at_the_target(dx_m: float, dv_m_s: float) -> None:
+    """In the last hold a time-optimal re-plan has three durations for four end conditions; the
+    re-shaped one also moves the inputs, and ends at rest (checked by another integrator)."""
+    from ballbeam.core.replanning import _remaining, reshape_remainder
+
+    d, plan = _paper_plan()
+    p = d.identified.params
+    limit = plan.theta_max_rad
+    elapsed = float(plan.switch_times_s[-4]) + 0.1  # inside the last hold
+    assert plan.holds[-3] != 0
+    state = plan.sample(np.array([elapsed])).states[0].copy()
+    state[2] += dv_m_s
+    state[3] += dx_m
+    shaped = reshape_remainder(
+        plan, elapsed, state, params=p, voltage_max_v=d.drive_limit_v + 0.5,
+        voltage_scale_v=0.3, theta_limit_rad=limit + 1e-9, voltage_limit_v=d.drive_limit_v,
+    )
+    assert shaped is not None
+    end = _arcs_end_by_expm(p.alpha, p.pole_per_s, p.gamma, np.array(shaped.start),
+                            shaped.input_v, shaped.duration_s_each)
+    assert end == pytest.approx(np.zeros(4), abs=1e-7)
+    assert max(abs(u) for u in shaped.input_v) <= d.drive_limit_v + 0.5
+    if dx_m == dv_m_s == 0.0:  # nothing to absorb: the plan's own remainder
+        inputs, _, taus = _remaining(plan, elapsed)
+        assert shaped.input_v == pytest.approx(inputs)
+        assert shaped.duration_s_each == pytest.approx(taus, abs=1e-9)
+    else:
+        assert shaped.input_v != pytest.approx(_remaining(plan, elapsed)[0])
+
+
+def test_the_filter_learns_gamma_from_every_sample() -> None:
+    """The ball driven by a known swing of θ with γ 15 % off the design: the filter's γ (the
+    design's plus its δγ state) comes to the true one within a second."""
+    true_gamma = 1.15 * Settings().prior_gamma
+    controller = ReplanningController(Settings(), np.zeros(4))
+    controller.step(0.0, 0.0)
+    h = PERIOD_S
+    theta, rate, speed, position = 0.0, 0.0, 0.0, 0.0
+    rng = np.random.default_rng(8)
+    for k in range(1, 1000):
+        # θ follows a 2 Hz swing of ±0.5 rad; the ball integrates γθ exactly (fine steps)
+        for j in range(10):
+            t = (k - 1 + j / 10) * h
+            theta = 0.5 * math.sin(2 * math.pi * 2.0 * t)
+            speed += true_gamma * theta * h / 10
+            position += speed * h / 10
+        rate = 0.5 * 2 * math.pi * 2.0 * math.cos(2 * math.pi * 2.0 * k * h)
+        controller._last_drive_v = 0.0
+        controller.estimate[1] = rate  # the servo's rate is not what this test is about
+        controller._filter(_C_TEST @ np.array(
+            [theta, 0.0, 0.0, position + 2e-4 * rng.standard_normal()]))
+    gamma = controller.design.identified.gamma + controller._gamma_error
+    assert gamma == pytest.approx(true_gamma, rel=0.01)
+    assert abs(controller.estimate[2] - speed) < 1e-3
+
+
+_C_TEST = np.array([[57.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 100.0]])
+
+
+def test_the_terminal_set_is_left_only_beyond_the_estimates_uncertainty() -> None:
+    """A true state on the set's boundary, estimated with the estimator's own error: the
+    statistical exit (3σ) fires in about Φ(−3) of the draws, far fewer than a raw test of the
+    estimate against the set (half of them)."""
+    settings = Settings(terminal_exit_sigmas=3.0)
+    controller = ReplanningController(settings, np.zeros(4))
+    d = controller.design
+    rng = np.random.default_rng(11)
+    direction = np.array([0.0, 0.0, 0.0, 1.0])
+    boundary = direction * math.sqrt(d.terminal_level / float(direction @ d.P_terminal @ direction))
+    errors = rng.multivariate_normal(np.zeros(4), d.estimate_covariance, size=4000)
+    left = raw = 0
+    for error in errors:
+        controller.estimate = boundary + error
+        left += controller._left_terminal_set()
+        raw += not controller._in_terminal_set()
+    assert left / len(errors) < 0.01
+    assert 0.3 < raw / len(errors) < 0.7
+    controller.estimate = boundary * 3.0  # far outside: left
+    assert controller._left_terminal_set()
+
+
+def test_at_rest_the_filter_settles_to_the_kalman_filter_of_the_rest_noise() -> None:
+    """θ held at 0: the ball's unmodelled acceleration is only the encoder's unmeasured
+    fraction of a count; the running covariance settles to the steady Kalman filter of that
+    noise (solved here by scipy's Riccati solver), far quieter than the design's observer."""
+    import scipy.linalg
+
+    controller = ReplanningController(Settings(), np.zeros(4))
+    controller.step(0.0, 0.0)
+    s, d = controller.settings, controller.design
+    for _ in range(12000):
+        controller._last_drive_v = 0.0
+        controller._filter(np.zeros(2))
+    rest_noise = abs(d.identified.gamma) * s.encoder_step_rad / math.sqrt(12.0)
+    Q = d.process_noise + rest_noise**2 * d.ball_process_noise
+    prior = scipy.linalg.solve_discrete_are(d.Ad.T, _C_TEST.T, Q, d.measurement_noise)
+    gain = prior @ _C_TEST.T @ np.linalg.inv(_C_TEST @ prior @ _C_TEST.T + d.measurement_noise)
+    expected = (np.eye(4) - gain @ _C_TEST) @ prior
+    got = controller._covariance[:4, :4]
+    assert np.sqrt(np.diag(got)) == pytest.approx(np.sqrt(np.diag(expected)), rel=1e-3)
+    # the threshold at rest follows: smaller than the design observer's
+    assert controller._ramp_v() < 0.5 * d.ramp_v

@@ -24,6 +24,14 @@ Each 1 ms cycle:
   plan's own servo state and the estimated ball (the servo's small errors are the tracker's).
   A re-plan that adds arcs (a detour) is taken only when the ball is off by far more than the
   estimate's noise; a tap or a new target is far, and is planned from the state then.
+* **Estimate** (``estimate_gamma``): a Kalman filter on (θ, θ̇, ẋ, x, δγ), δγ the error of the
+  design's γ: the ball's acceleration error δγ·θ is followed as θ swings (a fixed-gain observer
+  lags it by 1–2.5 mm/s through a stroke), γ is learnt from every sample and handed to the
+  design. What the model leaves out of the ball's acceleration is taken in proportion to |θ|
+  (``ball_noise_with_angle``): at rest the estimate is as quiet as the encoder allows, and the
+  terminal regulator needs no noise threshold.
+* **Re-shaping** (``reshape``, off: measured, not kept): where a time-optimal re-plan of the
+  same arcs has no root, the remaining arcs' inputs move within a headroom.
 * **Track**: drive = plan drive + K (plan state − estimate), K a discrete LQR of the identified
   model.
 * **Terminal regulator**: in the plan's last stroke, once the error is inside the terminal
@@ -46,8 +54,12 @@ import scipy.linalg
 
 from ballbeam.core.guard import AngleGuard, guarded_voltage, make_angle_guard, make_soft_cap
 from ballbeam.core.model import BALL_POSITION, THETA, LinearModel, as_row4
-from ballbeam.core.observer import design_observer
-from ballbeam.core.planning.arcs import ArcPlan, plan_arcs, replan
+from ballbeam.core.observer import (
+    design_observer,
+    measurement_noise_covariance,
+    process_noise_covariance,
+)
+from ballbeam.core.planning.arcs import ArcPlan, _free, _step, _theta_extreme, plan_arcs, replan
 from ballbeam.core.planning.lag_hold import _Params
 from ballbeam.core.plant import (
     EmulatedPlant,
@@ -63,6 +75,10 @@ _C = np.array([[57.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 100.0]])
 # A window is left out when its own best fit leaves χ² beyond dof + this many standard
 # deviations of χ² (√(2·dof)).
 _OUTLIER_SIGMAS = 6.0
+# The re-shaping solve (Gauss-Newton on exact Jacobians): its stopping test on residuals in
+# the problem's own units, and its iteration bound.
+_RESHAPE_TOLERANCE = 1e-9
+_RESHAPE_ITERATIONS = 8
 
 
 class WindowedLeastSquares:
@@ -156,6 +172,136 @@ def ball_window(
     return np.asarray(position_m, dtype=float), nuisance, twice[:, None]
 
 
+def _remaining(plan: ArcPlan, elapsed_s: float) -> tuple[list[float], list[int], list[float]]:
+    """The arcs left after ``elapsed_s``: (inputs, holds, durations), each arc's own input."""
+    inputs, holds, taus = [], [], []
+    t0 = 0.0
+    for u, tau, hold in zip(plan.input_v, plan.duration_s_each, plan.holds, strict=True):
+        left = min(tau, t0 + tau - elapsed_s)
+        t0 += tau
+        if left > 0.0:
+            inputs.append(u)
+            holds.append(hold)
+            taus.append(left)
+    return inputs, holds, taus
+
+
+def _reshape_system(
+    p: _Params,
+    start: tuple[float, float, float, float],
+    inputs: list[float],
+    holds: list[int],
+    taus: list[float],
+    theta_hold_rad: float,
+    scales: tuple[float, float, float, float],
+) -> tuple[np.ndarray, np.ndarray]:
+    """Scaled residuals (rest at the origin; each hold after the first arc entered at rest on
+    its limit) and their Jacobian in (durations, the full-voltage arcs' inputs). Exact: the
+    state after an arc is affine in its input, and the free response carries a change on."""
+    n = len(taus)
+    free = [i for i in range(n) if not holds[i]]
+    states = [start]
+    for u, tau in zip(inputs, taus, strict=True):
+        states.append(_step(p, states[-1], u, tau))
+    times = [0.0]
+    for tau in taus:
+        times.append(times[-1] + tau)
+    by_tau = [
+        (states[i + 1][1], -p.pole_per_s * states[i + 1][1] + p.alpha * inputs[i],
+         p.gamma * states[i + 1][0], states[i + 1][2])
+        for i in range(n)
+    ]
+    by_input = [_step(p, (0.0, 0.0, 0.0, 0.0), 1.0, taus[i]) for i in range(n)]
+    rows: list[float] = []
+    jac: list[list[float]] = []
+
+    def carried(k: int, j: int) -> list[float]:
+        row = [_free(p, by_tau[i], times[k] - times[i + 1])[j] if i < k else 0.0
+               for i in range(n)]
+        row += [_free(p, by_input[i], times[k] - times[i + 1])[j] if i < k else 0.0
+                for i in free]
+        return [v / scales[j] for v in row]
+
+    for k in range(1, n):
+        if holds[k]:
+            rows += [(states[k][0] - holds[k] * theta_hold_rad) / scales[0],
+                     states[k][1] / scales[1]]
+            jac += [carried(k, 0), carried(k, 1)]
+    rows += [states[n][j] / scales[j] for j in range(4)]
+    jac += [carried(n, j) for j in range(4)]
+    return np.array(rows), np.array(jac)
+
+
+def reshape_remainder(
+    plan: ArcPlan,
+    elapsed_s: float,
+    state: np.ndarray,
+    *,
+    params: _Params,
+    voltage_max_v: float,
+    voltage_scale_v: float,
+    theta_limit_rad: float,
+    voltage_limit_v: float,
+) -> ArcPlan | None:
+    """The plan's remaining arcs, same structure, re-shaped to end at rest at the target from
+    ``state``: each arc's duration and each full-voltage arc's input (|u| ≤ ``voltage_max_v``,
+    its sign kept) move by the least change, durations weighed in the servo's time constant
+    and inputs in ``voltage_scale_v`` (the headroom kept for this). Where a time-optimal
+    re-plan of the same structure has no root (one duration per arc against four end
+    conditions: the last stroke, a hold), the inputs' headroom absorbs the estimate's error
+    instead of a detour. None when the structure cannot absorb it."""
+    inputs, holds, taus = _remaining(plan, elapsed_s)
+    n = len(taus)
+    free = [i for i in range(n) if not holds[i]]
+    equations = 4 + 2 * sum(1 for k in range(1, n) if holds[k])
+    if n + len(free) < equations or not free:
+        return None
+    theta, rate, speed, pos = (float(v) for v in state)
+    start = (theta, rate, speed, pos - plan.target_m)
+    accel = abs(params.gamma) * plan.theta_max_rad
+    time_unit = 1.0 / params.pole_per_s
+    scales = (plan.theta_max_rad, plan.voltage_limit_v * params.alpha / params.pole_per_s,
+              accel * time_unit, accel * time_unit**2)
+    weights = np.array([time_unit] * n + [voltage_scale_v] * len(free))
+    x = np.array(taus + [inputs[i] for i in free])
+    for _ in range(_RESHAPE_ITERATIONS):
+        current = list(inputs)
+        for j, i in enumerate(free):
+            current[i] = float(x[n + j])
+        r, J = _reshape_system(params, start, current, holds, x[:n].tolist(),
+                               plan.theta_max_rad, scales)
+        if float(np.max(np.abs(r))) < _RESHAPE_TOLERANCE:
+            break
+        Jw = J * weights
+        try:
+            x = x - weights * (Jw.T @ np.linalg.solve(Jw @ Jw.T, r))
+        except np.linalg.LinAlgError:
+            return None
+        if not np.all(np.isfinite(x)) or float(np.min(x[:n])) < 0.0:
+            return None  # off the structure (a negative duration): no small change absorbs it
+    else:
+        return None
+    taus_new = x[:n].tolist()
+    if min(taus_new) < 0.0:
+        return None
+    for j, i in enumerate(free):
+        u = float(x[n + j])
+        if u * inputs[i] <= 0.0 or abs(u) > voltage_max_v:
+            return None
+        inputs[i] = u
+    s = start
+    for u, tau in zip(inputs, taus_new, strict=True):
+        if _theta_extreme(params, s, u, tau) > theta_limit_rad:
+            return None
+        s = _step(params, s, u, tau)
+    return ArcPlan(
+        input_v=tuple(inputs), duration_s_each=tuple(taus_new), holds=tuple(holds), start=start,
+        target_m=plan.target_m, voltage_limit_v=voltage_limit_v,
+        theta_max_rad=plan.theta_max_rad, pole_per_s=params.pole_per_s, alpha=params.alpha,
+        gamma=params.gamma,
+    )
+
+
 @dataclass(frozen=True)
 class Identified:
     """The plant as identified, with standard deviations: θ̈ = −a θ̇ + α·drive, ẍ = γ θ,
@@ -233,6 +379,23 @@ class Settings:
     soft_rate_gain_per_s: float = 40.0  # how hard the rate is pulled back to the allowed rate
     rest_band_m: float = 5e-4  # the task's rest band: the ball within this of the target
     terminal_exit_factor: float = 25.0  # the terminal LQR hands back beyond this × its level
+    reshape: bool = False  # re-plans without a root re-shape the remaining arcs' inputs
+    headroom_v: float = 0.3  # the plan's drive kept for re-shaping
+    reshape_sigmas: float = 0.0  # ... when the ball is off the plan by more than this many σ
+    # the terminal LQR hands back when the estimate is outside its set by more than this many
+    # of its own standard deviations (None: the fixed factor above)
+    terminal_exit_sigmas: float | None = None
+    # γ's error a state of the estimator (a Kalman filter on (θ, θ̇, ẋ, x, δγ)) rather than
+    # process noise of a fixed-gain observer: the ball's acceleration error γ̃·θ is followed
+    # as θ swings, and γ is learnt from every sample
+    estimate_gamma: bool = True
+    # (with estimate_gamma) the unmodelled ball acceleration in proportion to |θ| (all of
+    # unmodelled_ball_m_s2 at the angle limit), and the terminal regulator's noise threshold
+    # from the filter's running covariance: the estimate at rest is as quiet as the rest is
+    ball_noise_with_angle: bool = True
+    # the terminal regulator leaves out drives below its noise (a soft threshold); without
+    # it only the dead-zone compensation's ramp shapes the small drives
+    rest_threshold: bool = True
 
 
 def dlqr(
@@ -264,6 +427,12 @@ class _Design:
     ball_information: np.ndarray  # inverse covariance of the estimate's (ẋ, x) error
     guard: AngleGuard
     reserve_v: float
+    reshape_max_v: float  # the drive a re-shaped plan may use
+    estimate_covariance: np.ndarray  # of the estimate's error (the observer's steady state)
+    process_noise: np.ndarray  # (4, 4) of the filter that estimates γ's error as a state
+    ball_process_noise: np.ndarray  # (4, 4) of a unit held ball acceleration
+    measurement_noise: np.ndarray  # (2, 2)
+    headroom_v: float  # the plan's drive kept below that for re-shaping
 
 
 def _design(identified: Identified, s: Settings) -> _Design:
@@ -289,6 +458,7 @@ def _design(identified: Identified, s: Settings) -> _Design:
     drive_max = U - identified.deadzone_v - z * identified.drive_std(U)
     # Tracker's reserve: z σ of the drive the estimate's noise puts into the correction.
     reserve = z * math.sqrt(float(K @ observer.P_estimate @ K))
+    headroom = s.headroom_v if s.reshape else 0.0
     ramp = 2.0 * math.sqrt(float(K_t @ observer.P_estimate @ K_t))
     ramp_tracking = 2.0 * math.sqrt(float(K @ observer.P_estimate @ K))
     ball_cov = observer.P_estimate[2:, 2:]
@@ -334,7 +504,19 @@ def _design(identified: Identified, s: Settings) -> _Design:
         K_terminal=K_t,
         P_terminal=P_t,
         terminal_level=level,
-        drive_limit_v=max(0.5, drive_max - reserve),
+        drive_limit_v=max(0.5, drive_max - reserve - headroom),
+        reshape_max_v=max(0.5, drive_max - reserve),
+        headroom_v=max(headroom, 1e-3),
+        estimate_covariance=observer.P_estimate,
+        process_noise=process_noise_covariance(
+            discrete,
+            math.hypot(identified.drive_std(U), s.unmodelled_drive_v),
+            s.unmodelled_ball_m_s2 if not s.ball_noise_with_angle else 0.0,
+        ),
+        ball_process_noise=process_noise_covariance(discrete, 0.0, 1.0),
+        measurement_noise=measurement_noise_covariance(
+            _C, s.encoder_step_rad / math.sqrt(12.0), s.position_noise_m
+        ),
         drive_max_v=drive_max,
         ramp_v=ramp,
         ramp_tracking_v=ramp_tracking,
@@ -372,6 +554,7 @@ class ReplanningController:
     cycle: int = field(init=False, default=0)
     replans: int = field(init=False, default=0)
     missed: int = field(init=False, default=0)
+    reshaped: int = field(init=False, default=0)
     cold_plans: int = field(init=False, default=0)
     near_plans: int = field(init=False, default=0)
     _last_drive_v: float = field(init=False, default=0.0)
@@ -380,6 +563,8 @@ class ReplanningController:
     _command: list[float] = field(init=False, default_factory=list)
     _servo_from: int = field(init=False, default=0)
     _ball_from: int = field(init=False, default=0)
+    _gamma_error: float = field(init=False, default=0.0)  # the filter's δγ (estimate_gamma)
+    _covariance: np.ndarray = field(init=False, default_factory=lambda: np.zeros((5, 5)))
 
     def __post_init__(self) -> None:
         s = self.settings
@@ -427,18 +612,30 @@ class ReplanningController:
         s = self.settings
         d = self.design
         y = _C @ np.array([theta_rad, 0.0, 0.0, position_m])
-        if self.cycle:
+        if self.cycle and s.estimate_gamma:
+            self._filter(y)
+        elif self.cycle:
             prior = d.Ad @ self.estimate + d.bd * self._last_drive_v
             self.estimate = prior + d.L @ (y - _C @ prior)
         else:
             self.estimate = np.array(
                 [theta_rad, self.initial_state[1], self.initial_state[2], position_m]
             )
+            self._covariance = scipy.linalg.block_diag(
+                d.estimate_covariance, d.identified.gamma_std**2
+            )
         self._theta.append(theta_rad)
         self._position.append(position_m)
         self._learn()
         if self.cycle and self.cycle % s.identify_every == 0:
-            self.design = d = _design(self._identified(), s)
+            identified = self._identified()
+            if s.estimate_gamma:  # γ is the filter's: the design takes it, the state re-based
+                identified = replace(
+                    identified, gamma=d.identified.gamma + self._gamma_error,
+                    gamma_std=math.sqrt(float(self._covariance[4, 4])),
+                )
+                self._gamma_error = 0.0
+            self.design = d = _design(identified, s)
         record = self._drive()
         command = self._compensate(record.plan_drive_v)
         record.command_v = command
@@ -446,6 +643,42 @@ class ReplanningController:
         self._last_drive_v = _dead_zone(command, d.identified.deadzone_v)
         self.cycle += 1
         return record
+
+    def _filter(self, y: np.ndarray) -> None:
+        """One Kalman step on (θ, θ̇, ẋ, x, δγ): ẍ = (γ̂ + δγ)·θ, δγ constant."""
+        d = self.design
+        h = self.settings.period_s
+        theta, rate = float(self.estimate[THETA]), float(self.estimate[1])
+        F = np.eye(5)
+        F[:4, :4] = d.Ad
+        # δγ·∫θ and δγ·∫∫θ over the step, θ moving at its rate (a fast stroke moves θ by
+        # a percent of itself in one step)
+        F[2, 4] = h * (theta + 0.5 * rate * h)
+        F[3, 4] = 0.5 * h * h * (theta + rate * h / 3.0)
+        z = np.append(self.estimate, self._gamma_error)
+        prior = F @ z
+        prior[:4] += d.bd * self._last_drive_v
+        P = F @ self._covariance @ F.T
+        P[:4, :4] += d.process_noise
+        if self.settings.ball_noise_with_angle:
+            s = self.settings
+            # what the model leaves out of the ball's acceleration is a fraction of γθ (the
+            # nonlinear ball, a gain): at θ = 0 only the servo's unmeasured fraction of an
+            # encoder count is left
+            ball_noise = math.hypot(
+                s.unmodelled_ball_m_s2 * theta / s.theta_limit_rad,
+                abs(d.identified.gamma) * s.encoder_step_rad / math.sqrt(12.0),
+            )
+            P[:4, :4] += ball_noise**2 * d.ball_process_noise
+        H = np.zeros((2, 5))
+        H[:, :4] = _C
+        S = H @ P @ H.T + d.measurement_noise
+        gain = np.linalg.solve(S, H @ P).T
+        z = prior + gain @ (y - H @ prior)
+        P = P - gain @ H @ P
+        self._covariance = 0.5 * (P + P.T)
+        self.estimate = z[:4]
+        self._gamma_error = float(z[4])
 
     def _learn(self) -> None:
         s = self.settings
@@ -475,6 +708,21 @@ class ReplanningController:
     def _in_terminal_set(self, factor: float = 1.0) -> bool:
         e = self._error()
         return float(e @ self.design.P_terminal @ e) <= factor * self.design.terminal_level
+
+    def _left_terminal_set(self) -> bool:
+        """Whether the state has left the terminal set: beyond ``terminal_exit_factor`` × its
+        level, or (``terminal_exit_sigmas`` set) outside it by more than that many standard
+        deviations of the estimate's own error, measured along the set's norm
+        √(eᵀPe) (its gradient Pe/√(eᵀPe) carries the error's covariance)."""
+        s = self.settings
+        d = self.design
+        if s.terminal_exit_sigmas is None:
+            return not self._in_terminal_set(s.terminal_exit_factor)
+        e = self._error()
+        norm = math.sqrt(max(float(e @ d.P_terminal @ e), 1e-300))
+        gradient = d.P_terminal @ e / norm
+        sigma = math.sqrt(float(gradient @ d.estimate_covariance @ gradient))
+        return norm - math.sqrt(d.terminal_level) > s.terminal_exit_sigmas * sigma
 
     def _plan_from_estimate(self, near: bool = False, state: np.ndarray | None = None) -> None:
         """A fresh plan from the estimate (or ``state``); ``near``: close to the target, where
@@ -515,9 +763,8 @@ class ReplanningController:
         return (self.cycle - self.plan_start_cycle) * self.settings.period_s
 
     def _drive(self) -> CycleRecord:
-        s = self.settings
         d = self.design
-        if self.terminal and not self._in_terminal_set(s.terminal_exit_factor):
+        if self.terminal and self._left_terminal_set():
             self.terminal = False
             self.plan = None
             self._plan_from_estimate(near=True)
@@ -549,10 +796,10 @@ class ReplanningController:
             reference[BALL_POSITION] += plan.target_m
             feedforward = float(sample.input_v[0])
             drive = feedforward + float(d.K @ (reference - self.estimate))
-        if self.terminal:
+        if self.terminal and self.settings.rest_threshold:
             # at rest every drive smaller than the estimate's noise is a reaction to noise:
             # a soft threshold (continuous) leaves it out
-            drive = math.copysign(max(abs(drive) - d.ramp_v, 0.0), drive)
+            drive = math.copysign(max(abs(drive) - self._ramp_v(), 0.0), drive)
         drive = guarded_voltage(d.guard, as_row4(self.estimate), drive)
         return CycleRecord(0.0, reference, drive, self.terminal, feedforward, self.estimate.copy())
 
@@ -565,27 +812,17 @@ class ReplanningController:
         elapsed = self._elapsed()
         edges = plan.switch_times_s
         if len(edges) >= 2 and elapsed >= edges[-2]:
-            return  # the last stroke: the terminal regulator's, not a re-plan's
+            return  # the last arc: the terminal regulator's, not a re-plan's
         on_plan = plan.sample(np.array([elapsed])).states[0]
         est = self.estimate
         d = self.design
-        if _moved(plan, d.identified.params, d.drive_limit_v, s.model_change):
-            # the identified model moved: the plan is re-solved for it, warm if Newton finds
-            # the root from the old durations, else afresh
-            start = np.array([on_plan[0], on_plan[1], est[2], est[3]])
-            warm = replace(plan, voltage_limit_v=d.drive_limit_v)
-            new = replan(warm, elapsed, start, target_m=self.target_m, params=d.identified.params)
-            self.replans += 1
-            if new is not None:
-                self.plan, self.plan_start_cycle = new, self.cycle
-            else:
-                self._plan_from_estimate(state=start)
-            return
-        # the plan's own servo state, the estimated ball (absolute position)
+        # the plan's own servo state, the estimated ball (absolute position); a re-plan is
+        # for the identified model and drive as they are now
         from_state = np.array([on_plan[0], on_plan[1], est[2], est[3]])
         warm = replace(plan, voltage_limit_v=d.drive_limit_v)
         new = replan(warm, elapsed, from_state, target_m=self.target_m, params=d.identified.params)
         self.replans += 1
+        moved = _moved(plan, d.identified.params, d.drive_limit_v, s.model_change)
         if s.detour_sigmas is None:
             far = abs(est[3] - (on_plan[3] + plan.target_m)) > s.detour_position_m or abs(
                 est[2] - on_plan[2]
@@ -593,19 +830,45 @@ class ReplanningController:
         else:
             miss = np.array([est[2] - on_plan[2], est[3] - on_plan[3] - plan.target_m])
             far = float(miss @ d.ball_information @ miss) > s.detour_sigmas**2
-        if new is None:
-            self.missed += 1
-            if far:
-                self._plan_from_estimate()
-            return
-        if len(new.input_v) <= len(plan.shifted(elapsed)[0]) or far:
+        keeps_arcs = new is not None and len(new.input_v) <= len(plan.shifted(elapsed)[0])
+        if new is not None and (keeps_arcs or far or (moved and not s.reshape)):
             self.plan = new
             self.plan_start_cycle = self.cycle
+            return
+        if new is None:
+            self.missed += 1
+        miss = np.array([est[2] - on_plan[2], est[3] - on_plan[3] - plan.target_m])
+        significant = float(miss @ d.ball_information @ miss) > s.reshape_sigmas**2
+        if s.reshape and (significant or moved):
+            # no time-optimal root without a detour: the remaining arcs' inputs absorb the
+            # estimate's error (and a model's change) in the headroom kept for it
+            shaped = reshape_remainder(
+                plan, elapsed, from_state, params=d.identified.params,
+                voltage_max_v=d.reshape_max_v, voltage_scale_v=d.headroom_v,
+                theta_limit_rad=s.theta_limit_rad - s.plan_theta_margin_rad,
+                voltage_limit_v=d.drive_limit_v,
+            )
+            if shaped is not None:
+                self.plan = shaped
+                self.plan_start_cycle = self.cycle
+                self.reshaped += 1
+                return
+        if far or (moved and new is None):
+            self._plan_from_estimate(state=from_state if moved else None)
+
+    def _ramp_v(self) -> float:
+        """Twice the σ of the terminal drive the estimate's error carries: from the design's
+        steady observer, or the filter's running covariance (``ball_noise_with_angle``)."""
+        d = self.design
+        if not (self.settings.estimate_gamma and self.settings.ball_noise_with_angle):
+            return d.ramp_v
+        P = self._covariance[:4, :4]
+        return 2.0 * math.sqrt(float(d.K_terminal @ P @ d.K_terminal))
 
     def _compensate(self, drive_v: float) -> float:
         d = self.design
         dz = d.identified.deadzone_v
-        ramp = max(d.ramp_v if self.terminal else d.ramp_tracking_v, 1e-6)
+        ramp = max(self._ramp_v() if self.terminal else d.ramp_tracking_v, 1e-6)
         command = drive_v + dz * max(-1.0, min(1.0, drive_v / ramp))
         limit = self.settings.voltage_limit_v
         return max(-limit, min(limit, command))
