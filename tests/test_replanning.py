@@ -235,7 +235,7 @@ def _paper_plan():  # type: ignore[no-untyped-def]
 def test_a_reshaped_remainder_ends_at_rest_at_the_target(dx_m: float, dv_m_s: float) -> None:
     """In the last hold a time-optimal re-plan has three durations for four end conditions; the
     re-shaped one also moves the inputs, and ends at rest (checked by another integrator)."""
-    from ballbeam.core.replanning import _remaining, reshape_remainder
+    from ballbeam.core.replanning import reshape_remainder
 
     d, plan = _paper_plan()
     p = d.identified.params
@@ -255,11 +255,11 @@ def test_a_reshaped_remainder_ends_at_rest_at_the_target(dx_m: float, dv_m_s: fl
     assert end == pytest.approx(np.zeros(4), abs=1e-7)
     assert max(abs(u) for u in shaped.input_v) <= d.drive_limit_v + 0.5
     if dx_m == dv_m_s == 0.0:  # nothing to absorb: the plan's own remainder
-        inputs, _, taus = _remaining(plan, elapsed)
+        inputs, _, taus = plan.remaining(elapsed)
         assert shaped.input_v == pytest.approx(inputs)
         assert shaped.duration_s_each == pytest.approx(taus, abs=1e-9)
     else:
-        assert shaped.input_v != pytest.approx(_remaining(plan, elapsed)[0])
+        assert shaped.input_v != pytest.approx(plan.remaining(elapsed)[0])
 
 
 def test_the_filter_learns_gamma_from_every_sample() -> None:

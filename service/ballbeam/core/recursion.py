@@ -19,7 +19,6 @@ def first_order_response(
     values = drive.tolist()
     previous = before
     for index, value in enumerate(values):
-        # gain · u is u itself where gain is 1, as in lfilter: skipping it changes no bit.
-        previous = (value if gain == 1.0 else gain * value) + pole * previous
+        previous = gain * value + pole * previous
         values[index] = previous
     return np.asarray(values, dtype=drive.dtype)

@@ -172,20 +172,6 @@ def ball_window(
     return np.asarray(position_m, dtype=float), nuisance, twice[:, None]
 
 
-def _remaining(plan: ArcPlan, elapsed_s: float) -> tuple[list[float], list[int], list[float]]:
-    """The arcs left after ``elapsed_s``: (inputs, holds, durations), each arc's own input."""
-    inputs, holds, taus = [], [], []
-    t0 = 0.0
-    for u, tau, hold in zip(plan.input_v, plan.duration_s_each, plan.holds, strict=True):
-        left = min(tau, t0 + tau - elapsed_s)
-        t0 += tau
-        if left > 0.0:
-            inputs.append(u)
-            holds.append(hold)
-            taus.append(left)
-    return inputs, holds, taus
-
-
 def _reshape_system(
     p: _Params,
     start: tuple[float, float, float, float],
@@ -250,7 +236,7 @@ def reshape_remainder(
     re-plan of the same structure has no root (one duration per arc against four end
     conditions: the last stroke, a hold), the inputs' headroom absorbs the estimate's error
     instead of a detour. None when the structure cannot absorb it."""
-    inputs, holds, taus = _remaining(plan, elapsed_s)
+    inputs, holds, taus = plan.remaining(elapsed_s)
     n = len(taus)
     free = [i for i in range(n) if not holds[i]]
     equations = 4 + 2 * sum(1 for k in range(1, n) if holds[k])

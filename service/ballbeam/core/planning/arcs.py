@@ -312,19 +312,24 @@ class ArcPlan:
             input_v[inside] = u
         return PlanSamples(time_s=t, states=states, input_v=input_v)
 
-    def shifted(self, elapsed_s: float) -> tuple[list[int], list[int], list[float]]:
-        """The arcs left after ``elapsed_s``: (signs, holds, durations), a guess for a
-        re-plan."""
-        signs, holds, taus = [], [], []
+    def remaining(self, elapsed_s: float) -> tuple[list[float], list[int], list[float]]:
+        """The arcs left after ``elapsed_s``: (inputs, holds, durations)."""
+        inputs, holds, taus = [], [], []
         t0 = 0.0
         for u, tau, hold in zip(self.input_v, self.duration_s_each, self.holds, strict=True):
             left = min(tau, t0 + tau - elapsed_s)
             t0 += tau
             if left > 0.0:
-                signs.append(int(math.copysign(1.0, u)) if u else 0)
+                inputs.append(u)
                 holds.append(hold)
                 taus.append(left)
-        return signs, holds, taus
+        return inputs, holds, taus
+
+    def shifted(self, elapsed_s: float) -> tuple[list[int], list[int], list[float]]:
+        """The arcs left after ``elapsed_s`` as a guess for a re-plan: (signs, holds,
+        durations)."""
+        inputs, holds, taus = self.remaining(elapsed_s)
+        return [int(math.copysign(1.0, u)) if u else 0 for u in inputs], holds, taus
 
 
 def _replay(p: _Params, s: State, inputs: Sequence[float], taus: Sequence[float]) -> State:
