@@ -8,6 +8,7 @@ from __future__ import annotations
 import functools
 import json
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -22,6 +23,7 @@ from ballbeam.config import (
 from ballbeam.core.adaptation import BallGainAdaptation, DeadZoneLearning, NoiseAdaptation
 from ballbeam.core.control import ControllerDesign, ObserverLaw, RestGains
 from ballbeam.core.guard import AngleGuard, make_angle_guard, make_soft_cap
+from ballbeam.core.law import ControlLaw, TrackerLaw
 from ballbeam.core.metrics import RunMetrics, compute_metrics
 from ballbeam.core.model import BALL_POSITION, LinearModel, PhysicalConstants, Row4, as_row4
 from ballbeam.core.observer import design_observer
@@ -39,6 +41,8 @@ from ballbeam.errors import ConfigError, PlanningError
 
 if TYPE_CHECKING:  # the floor's module loads the LP solver: only when a floor is asked for
     from ballbeam.core.floor import OwnFloor
+    from ballbeam.core.planning.arcs import ArcPlan
+    from ballbeam.core.replanning import Settings
 
 DEFAULT_POSITION_NOISE_M = 2e-4
 
@@ -504,6 +508,64 @@ def _on_encoder_level(soft_limit_rad: float, hard_limit_rad: float, step_rad: fl
     return levels * step_rad
 
 
+def position_noise_m(config: Config) -> float:
+    """The position sensor's noise the controller expects: the config's, else the design's
+    default with the ADC's quantisation."""
+    adc_step_m = config.sensors.adc_step_m(physical_constants(config).beam_length_m)
+    return config.observer.position_noise_m or math.hypot(
+        DEFAULT_POSITION_NOISE_M, adc_step_m / math.sqrt(12.0)
+    )
+
+
+def replanning_settings(config: Config) -> Settings:
+    """The re-planning law's settings from the config: its period, limits, sensors and the
+    design model as the identification's prior (its other settings are its own defaults)."""
+    from ballbeam.core.replanning import Settings
+
+    model = design_model(config)
+    return Settings(
+        period_s=config.controller.period_s,
+        voltage_limit_v=config.limits.voltage_v,
+        theta_limit_rad=config.limits.theta_rad,
+        encoder_step_rad=config.sensors.encoder_step_rad,
+        position_noise_m=position_noise_m(config),
+        prior_alpha=float(model.B[1, 0]),
+        prior_pole_per_s=float(-model.A[1, 1]),
+        prior_gamma=float(model.A[2, 0]),
+    )
+
+
+def control_law(
+    config: Config,
+    design: ControllerDesign | None = None,
+    recorded_plans: Mapping[int, ArcPlan] | None = None,
+) -> ControlLaw:
+    """The law ``controller.kind`` names, in its starting state. The tracker runs ``design``
+    (default: the config's); the re-planner takes ``recorded_plans`` in a replay."""
+    if config.controller.kind == "replanning":
+        from ballbeam.core.replanning_law import ReplanningLaw
+
+        return ReplanningLaw(
+            replanning_settings(config),
+            config.initial.state(),
+            make_task(config),
+            encoder_step_rad=config.sensors.encoder_step_rad,
+            adc_step_m=config.sensors.adc_step_m(physical_constants(config).beam_length_m),
+            recorded_plans=recorded_plans,
+        )
+    return TrackerLaw(design if design is not None else controller_design(config))
+
+
+def counts_per_measurement(config: Config) -> tuple[float, float]:
+    """Measurement units (the sensor gains' 57·θ, 100·x) per encoder and per ADC count, as
+    the tracker's design has them."""
+    constants = physical_constants(config)
+    return (
+        constants.angle_sensor_gain * config.sensors.encoder_step_rad,
+        constants.position_sensor_gain * config.sensors.adc_step_m(constants.beam_length_m),
+    )
+
+
 def plant_parameters(config: Config) -> EmulatedPlant:
     plant = config.plant
     constants = physical_constants(config)
@@ -544,7 +606,7 @@ def run_cycles(config: Config) -> int:
 
 @dataclass(frozen=True)
 class OfflineRun:
-    design: ControllerDesign
+    design: ControllerDesign | None  # the tracker's (None: another law)
     trace: SimulationTrace
     metrics: RunMetrics
 
@@ -577,17 +639,19 @@ def minimum_time_key(config: Config) -> str:
 
 
 def run_offline(config: Config) -> OfflineRun:
-    return run_offline_with(config, controller_design(config), minimum_time_s(config))
+    design = controller_design(config) if config.controller.kind == "tracker" else None
+    return run_offline_with(config, design, minimum_time_s(config))
 
 
 def run_offline_with(
-    config: Config, design: ControllerDesign, minimum_time: float | None
+    config: Config, design: ControllerDesign | None, minimum_time: float | None
 ) -> OfflineRun:
     """The offline run of ``config`` with its design and T* already made (a sweep reuses them
-    across points that share them: :func:`design_key`, :func:`minimum_time_key`)."""
+    across points that share them: :func:`design_key`, :func:`minimum_time_key`); ``design``
+    None: a law without one (``controller.kind``)."""
     physics = PlantPhysics(plant_parameters(config))
     trace = simulate_closed_loop(
-        design,
+        control_law(config, design),
         physics,
         config.initial.state(),
         n_cycles=run_cycles(config),

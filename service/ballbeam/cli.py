@@ -133,18 +133,21 @@ def command_simulate(args: argparse.Namespace) -> int:
             config.limits.theta_rad,
             title=f"offline closed loop, {config.plan.kind} path",
         )
+    design = result.design
     if args.json:
         print_json(
             {
                 "plan_kind": config.plan.kind,
-                "plan_duration_s": result.design.plan_duration_s,
+                **({"plan_duration_s": design.plan_duration_s} if design is not None
+                   else {"controller_kind": config.controller.kind}),
                 **metrics,
             }
         )
     else:
         print_table(
             f"offline simulation ({config.plan.kind} path, "
-            f"{result.design.plan_duration_s:.4f} s plan)",
+            f"{design.plan_duration_s:.4f} s plan)" if design is not None
+            else f"offline simulation ({config.controller.kind} controller)",
             metrics,
         )
     return 0
@@ -335,6 +338,10 @@ def command_replay(args: argparse.Namespace) -> int:
                 f"recorded {mismatch.recorded_v!r} V, replayed {mismatch.replayed_v!r} V",
                 file=sys.stderr,
             )
+            exit_code = 1
+        if result.plan_mismatch is not None:
+            summary["verify_plan_mismatch"] = result.plan_mismatch
+            print(f"ballbeam: verify FAILED: {result.plan_mismatch}", file=sys.stderr)
             exit_code = 1
     if args.plot:
         from ballbeam.evaluation.plots import plot_log

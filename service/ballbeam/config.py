@@ -283,7 +283,15 @@ def _none_is_normal_scheduling(value: object) -> object:
     return 0 if value is None else value
 
 
+ControllerKind = Literal["tracker", "replanning"]
+
+
 class ControllerSection(_Section):
+    kind: ControllerKind = Field(
+        "tracker", description="the control law: the paper's time-varying LQ tracker of one "
+        "plan (\"tracker\"), or issue 27's identify-and-re-plan law (\"replanning\": "
+        "lock-step and offline only, its plans are solved inside the cycle)"
+    )
     rate_hz: int = Field(1000, ge=10, le=20000)
     sensor_timeout_periods: int = Field(
         3, ge=1, le=10000, description="periods without a sensor frame before a fault (0 V)"
@@ -780,6 +788,7 @@ class Config(_Section):
                 f"plant.sensor_rate_hz = {self.plant.sensor_rate_hz}"
             )
         self._sizes_fit_a_run()
+        self._controller_fits_the_run()
         half_beam_m = self.model.beam_length_m / 2
         if abs(self.initial.ball_position_m) > half_beam_m:
             raise ValueError(
@@ -813,6 +822,21 @@ class Config(_Section):
                     f"expect.{metric} must be a table with 'min' and/or 'max', got {bound}"
                 )
         return self
+
+    def _controller_fits_the_run(self) -> None:
+        if self.controller.kind != "replanning":
+            return
+        if self.run.mode == "realtime":
+            raise ValueError(
+                'controller.kind = "replanning" runs in lock-step only (run.mode = "lockstep"): '
+                "its plans are solved inside the 1 kHz cycle, which a solve (tens of ms) "
+                "would overrun on wall time"
+            )
+        if self.task.sine is not None:
+            raise ValueError(
+                'controller.kind = "replanning" brings the ball to targets (task.target_m, '
+                "task.setpoints, task.square); it has no sine tracking yet"
+            )
 
     def _sizes_fit_a_run(self) -> None:
         """Products of sizes a run must hold (the bounds' reasons: MAX_* at the top)."""

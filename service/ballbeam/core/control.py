@@ -32,6 +32,7 @@ from ballbeam.core.guard import (
     watch_lateness,
 )
 from ballbeam.core.model import Row4, as_row4
+from ballbeam.core.planning.arcs import ArcPlan
 from ballbeam.core.plant import SensorReading
 from ballbeam.errors import ConfigError
 
@@ -386,6 +387,9 @@ class CycleOutput(NamedTuple):
     measured: bool  # False when the cycle coasted on the observer
     reference: Row4  # x_d tracked this cycle, its position in x
     reference_input_v: float  # u_d at the same path position
+    # A re-planning law: the plans it adopted since its last output (a coasted period may
+    # adopt one too), each with the cycle from which it took effect.
+    adopted_plans: tuple[tuple[int, ArcPlan], ...] = ()
 
 
 def predict(observer: ObserverLaw, estimate: Row4, input_v: float, ball_ratio: float = 1.0) -> Row4:

@@ -47,7 +47,9 @@ Each 1 ms cycle:
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from typing import Any, TypeVar
 
 import numpy as np
 import scipy.linalg
@@ -79,6 +81,7 @@ _OUTLIER_SIGMAS = 6.0
 # the problem's own units, and its iteration bound.
 _RESHAPE_TOLERANCE = 1e-9
 _RESHAPE_ITERATIONS = 8
+PlanT = TypeVar("PlanT")
 
 
 class WindowedLeastSquares:
@@ -592,6 +595,11 @@ class ReplanningController:
         self.plan = None
         self.terminal = False
 
+    def _solve(self, solver: Callable[..., PlanT], *args: Any, **kwargs: Any) -> PlanT:
+        """Every plan the law makes is solved here (``plan_arcs``, ``replan``,
+        ``reshape_remainder``): the hook through which a replay injects the recorded plans."""
+        return solver(*args, **kwargs)
+
     # --- one cycle --------------------------------------------------------------------
 
     def step(self, theta_rad: float, position_m: float) -> CycleRecord:
@@ -723,14 +731,15 @@ class ReplanningController:
             p = d.identified.params
             empty = ArcPlan((), (), (), (0.0, 0.0, 0.0, 0.0), self.target_m, d.drive_limit_v,
                             limit, p.pole_per_s, p.alpha, p.gamma)
-            found = replan(empty, 0.0, state, target_m=self.target_m, params=p)
+            found = self._solve(replan, empty, 0.0, state, target_m=self.target_m, params=p)
             if found is not None:
                 self.plan = found
                 self.plan_start_cycle = self.cycle
                 self.near_plans += 1
                 return
         try:
-            self.plan = plan_arcs(
+            self.plan = self._solve(
+                plan_arcs,
                 d.identified.model(),
                 state,
                 target_m=self.target_m,
@@ -806,7 +815,9 @@ class ReplanningController:
         # for the identified model and drive as they are now
         from_state = np.array([on_plan[0], on_plan[1], est[2], est[3]])
         warm = replace(plan, voltage_limit_v=d.drive_limit_v)
-        new = replan(warm, elapsed, from_state, target_m=self.target_m, params=d.identified.params)
+        new = self._solve(
+            replan, warm, elapsed, from_state, target_m=self.target_m, params=d.identified.params
+        )
         self.replans += 1
         moved = _moved(plan, d.identified.params, d.drive_limit_v, s.model_change)
         if s.detour_sigmas is None:
@@ -828,7 +839,8 @@ class ReplanningController:
         if s.reshape and (significant or moved):
             # no time-optimal root without a detour: the remaining arcs' inputs absorb the
             # estimate's error (and a model's change) in the headroom kept for it
-            shaped = reshape_remainder(
+            shaped = self._solve(
+                reshape_remainder,
                 plan, elapsed, from_state, params=d.identified.params,
                 voltage_max_v=d.reshape_max_v, voltage_scale_v=d.headroom_v,
                 theta_limit_rad=s.theta_limit_rad - s.plan_theta_margin_rad,

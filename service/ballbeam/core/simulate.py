@@ -13,14 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ballbeam.core.control import (
-    ControllerDesign,
-    CycleOutput,
-    coast_cycles,
-    control_cycle,
-    lookahead_voltages,
-    starting_state,
-)
+from ballbeam.core.control import ControllerDesign, CycleOutput
+from ballbeam.core.law import ControlLaw, TrackerLaw
 from ballbeam.core.plant import (
     PlantPhysics,
     SensorReading,
@@ -52,7 +46,7 @@ class SimulationTrace:
 
 
 def simulate_closed_loop(
-    design: ControllerDesign,
+    law: ControlLaw | ControllerDesign,
     physics: PlantPhysics,
     initial_state: np.ndarray,
     n_cycles: int,
@@ -61,15 +55,17 @@ def simulate_closed_loop(
     rng: np.random.Generator,
     missed_periods: Mapping[int, int] | None = None,
 ) -> SimulationTrace:
-    """``n_cycles`` control periods from ``initial_state``. ``missed_periods``: {cycle k: n}
+    """``n_cycles`` control periods of ``law`` (in its starting state; a tracker's design: a
+    :class:`TrackerLaw` of it) from ``initial_state``. ``missed_periods``: {cycle k: n}
     — before cycle k the loop misses n periods (they count in ``n_cycles``): the plant drives
-    the look-ahead of the last command (``design.lookahead_periods``; none: it holds the
-    command), the controller coasts through them and runs cycle k n periods late."""
+    the look-ahead of the last command (a tracker's ``design.lookahead_periods``; none: it
+    holds the command), the controller coasts through them and runs cycle k n periods late."""
+    if isinstance(law, ControllerDesign):
+        law = TrackerLaw(law)
     params = physics.params
     missed = dict(missed_periods or {})
     state = np.asarray(initial_state, dtype=float)
     noise_m = initial_noise(params, rng)
-    controller = starting_state(design)
     columns: dict[str, list[object]] = {
         name: []
         for name in (
@@ -85,7 +81,7 @@ def simulate_closed_loop(
         )
     }
     output: CycleOutput | None = None
-    period_ns = round(design.period_s * 1e9)
+    period_ns = round(law.period_s * 1e9)
     steps_done = 0  # the plant's clock in physics steps (its taps land on it)
 
     def drive(voltage_v: float) -> float:
@@ -118,7 +114,7 @@ def simulate_closed_loop(
     cycle = late = 0
     while cycle < n_cycles:
         if output is not None and (late := min(missed.get(cycle, 0), n_cycles - cycle)):
-            lookahead_v = lookahead_voltages(design, controller)  # sent with the last command
+            lookahead_v = law.lookahead()  # sent with the last command
             for index in range(late):  # no command comes: the plant goes on without one
                 drive_v = (
                     lookahead_as_received(lookahead_v[min(index, len(lookahead_v) - 1)])
@@ -126,13 +122,13 @@ def simulate_closed_loop(
                     else command_as_received(output.voltage_v)
                 )
                 record(output, drive_v, None)
-            controller = coast_cycles(design, controller, output.voltage_v, late, lookahead_v)
+            law.coast(output.voltage_v, late, lookahead_v)
             cycle += late
             if cycle >= n_cycles:
                 break
         reading: SensorReading = read_sensors(params, state, noise_m)
-        controller, output = control_cycle(design, controller, reading, late * period_ns)
+        output = law.step(reading, late * period_ns)
         record(output, command_as_received(output.voltage_v), reading)
         cycle, late = cycle + 1, 0
     arrays = {name: np.array(values) for name, values in columns.items()}
-    return SimulationTrace(time_s=np.arange(n_cycles) * design.period_s, **arrays)
+    return SimulationTrace(time_s=np.arange(n_cycles) * law.period_s, **arrays)

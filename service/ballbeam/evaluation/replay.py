@@ -3,9 +3,12 @@
 The log carries the design the run used (``controller_design.npz``); the recorded sensor
 readings (and the cycles where the daemon coasted, faulted or skipped) drive the same pure
 control law, which is plain float arithmetic: every recorded voltage command must come out
-identical, bit for bit, on any machine. Separately, today's code re-synthesises the design
-from the recorded config, and the largest relative difference is reported (information: a
-different BLAS kernel or SciPy moves the synthesis in its last bits, not the replay).
+identical, bit for bit, on any machine. A re-planning law (``controller.kind``) has no design:
+it is rebuilt from the recorded config, and the plans it adopted (``/plans``) are injected at
+their cycles instead of solved; the re-run must adopt a plan exactly where the run did.
+Separately, today's code re-synthesises the tracker's design from the recorded config, and
+the largest relative difference is reported (information: a different BLAS kernel or SciPy
+moves the synthesis in its last bits, not the replay).
 A log without a recorded design (older format) is verified against the re-synthesised one.
 """
 
@@ -18,19 +21,16 @@ from typing import Any
 
 import numpy as np
 
-from ballbeam.assembly import controller_design
+from ballbeam.assembly import control_law, controller_design
 from ballbeam.config import Config, config_from_mapping
-from ballbeam.core.control import (
-    ControllerDesign,
-    coast_cycles,
-    control_cycle,
-    lookahead_voltages,
-    starting_state,
-)
+from ballbeam.core.control import ControllerDesign
+from ballbeam.core.law import ControlLaw, TrackerLaw
 from ballbeam.core.plant import SensorReading
+from ballbeam.core.replanning_law import ReplanningLaw
 from ballbeam.errors import BallbeamError, LogFormatError
 from ballbeam.evaluation.summary import check_layouts
 from ballbeam.logs import design_record
+from ballbeam.logs.plan_record import recorded_plans
 from ballbeam.logs.reader import RunLog
 
 VERIFY_TOPICS = ("/sensor", "/command", "/timing")
@@ -48,14 +48,19 @@ class Mismatch:
 class VerifyResult:
     cycles_checked: int
     mismatch: Mismatch | None
-    design_source: str  # "recorded" or "resynthesised" (a log without a recorded design)
+    # "recorded" or "resynthesised" (a log without a recorded design); "recorded plans": a
+    # re-planning law rebuilt from the recorded config with its recorded plans
+    design_source: str
     # Today's synthesis against the recorded design: largest relative difference, or the
     # reason it could not be computed. None when there is no recorded design to compare.
     resynthesis_difference: float | str | None
+    # A re-planning law: the first cycle at which the re-run adopted a plan where the log
+    # records none, or none (or another) where it records one; in words.
+    plan_mismatch: str | None = None
 
     @property
     def ok(self) -> bool:
-        return self.mismatch is None
+        return self.mismatch is None and self.plan_mismatch is None
 
 
 def verify(run_log: RunLog) -> VerifyResult:
@@ -87,11 +92,17 @@ def verify(run_log: RunLog) -> VerifyResult:
         raise LogFormatError(f"{run_log.path}: no control cycle recorded, nothing to verify")
     if count and not (np.array_equal(sensor["cycle"][:count], command["cycle"][:count])):
         raise LogFormatError(f"{run_log.path}: /sensor and /command cycles do not line up")
-    design, source, difference = _designs(run_log, config)
-    state = starting_state(design)
+    law: ControlLaw
+    if config is not None and config.controller.kind != "tracker":
+        law = control_law(config, recorded_plans=recorded_plans(run_log))
+        source: str = "recorded plans"
+        difference: float | str | None = None
+    else:
+        design, source, difference = _designs(run_log, config)
+        law = TrackerLaw(design)
     held_v = 0.0
     commanded = False  # whether the last command was the law's (it then carried a look-ahead)
-    period_ns = round(design.period_s * 1e9)
+    period_ns = round(law.period_s * 1e9)
     # The columns as Python ints and floats, converted once (the same values bit for bit):
     # reading a NumPy element costs several times what the cycle's arithmetic does.
     skipped_all = timing["skipped"][:count].tolist()
@@ -105,26 +116,35 @@ def verify(run_log: RunLog) -> VerifyResult:
     for index in range(count):
         skipped = int(skipped_all[index])
         if skipped:
-            lookahead_v = lookahead_voltages(design, state) if commanded else ()
-            state = coast_cycles(design, state, held_v, skipped, lookahead_v)
+            lookahead_v = law.lookahead() if commanded else ()
+            law.coast(held_v, skipped, lookahead_v)
         recorded_v = recorded_all[index]
         if enabled_all[index] == 0:
             # A fault cycle: the daemon sent 0 V and coasted its observer on it.
             replayed_v = 0.0
-            state = coast_cycles(design, state, 0.0, 1)
+            law.coast(0.0, 1)
             commanded = False
         else:
             reading = None
             if fresh_all[index]:
                 reading = SensorReading(int(angle_all[index]), int(position_all[index]))
             lateness_ns = int(lateness_all[index]) + skipped * period_ns
-            state, output = control_cycle(design, state, reading, lateness_ns)
+            output = law.step(reading, lateness_ns)
             replayed_v = output.voltage_v
             commanded = True
-        if replayed_v != recorded_v or state.cycle - 1 != int(cycles_all[index]):
+        plan_mismatch = law.plan_mismatch if isinstance(law, ReplanningLaw) else None
+        if plan_mismatch is not None:
+            return VerifyResult(index + 1, None, source, difference, plan_mismatch)
+        if replayed_v != recorded_v or law.cycle - 1 != int(cycles_all[index]):
             mismatch = Mismatch(index, int(cycles_all[index]), recorded_v, replayed_v)
             return VerifyResult(index + 1, mismatch, source, difference)
         held_v = replayed_v
+    if isinstance(law, ReplanningLaw):
+        unused = [cycle for cycle in recorded_plans(run_log) if cycle >= law.cycle]
+        if unused and not run_log.truncated:
+            return VerifyResult(count, None, source, difference, (
+                f"the log records a plan at cycle {min(unused)}, after the last cycle re-run"
+            ))
     return VerifyResult(count, None, source, difference)
 
 

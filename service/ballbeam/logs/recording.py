@@ -6,6 +6,9 @@ type (``logs/topics.py``), whose fields are the topic's layout.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
+from ballbeam.logs.plan_record import PLAN_SCHEMA, PLANS, plan_message
 from ballbeam.logs.recorder import ChannelHandle, Recorder
 from ballbeam.logs.topics import (
     DISTURBANCE_SCHEMA,
@@ -19,9 +22,13 @@ from ballbeam.logs.topics import (
     StructTopic,
 )
 
+if TYPE_CHECKING:
+    from ballbeam.core.planning.arcs import ArcPlan
+
 
 class RunRecording:
-    def __init__(self, recorder: Recorder) -> None:
+    def __init__(self, recorder: Recorder, plans: bool = False) -> None:
+        """``plans``: the law adopts plans, recorded on ``/plans`` (a replay injects them)."""
         self.recorder = recorder
         self._handles: dict[str, ChannelHandle] = {
             name: recorder.add_struct_channel(name, schema)
@@ -34,6 +41,8 @@ class RunRecording:
         self._handles[DISTURBANCES] = recorder.add_json_channel(
             DISTURBANCES, "ballbeam/Disturbance", DISTURBANCE_SCHEMA
         )
+        if plans:
+            self._handles[PLANS] = recorder.add_json_channel(PLANS, "ballbeam/Plan", PLAN_SCHEMA)
 
     def write(self, topic: StructTopic[R], log_time_ns: int, record: R) -> None:
         self.recorder.record(self._handles[topic.name], log_time_ns, record)
@@ -52,6 +61,10 @@ class RunRecording:
             "cycle": cycle, "time_s": time_s, "plant_step": plant_step,
             "ball_velocity_change_m_s": change_m_s,
         })
+
+    def plan(self, log_time_ns: int, cycle: int, plan: ArcPlan) -> None:
+        """A plan the law adopted, taking effect at ``cycle``."""
+        self.recorder.record(self._handles[PLANS], log_time_ns, plan_message(cycle, plan))
 
     def _note(self, topic: str, log_time_ns: int, cycle: int, kind: str, detail: str) -> None:
         self.recorder.record(

@@ -89,15 +89,16 @@ def offline_metrics(config: Config) -> dict[str, Any]:
     """``ballbeam simulate``'s metrics for ``config``, the design and T* from the cache."""
     from ballbeam import assembly
 
-    design = _DESIGNS.get(
-        assembly.design_key(config), lambda: assembly.controller_design(config)
+    design = (
+        _DESIGNS.get(assembly.design_key(config), lambda: assembly.controller_design(config))
+        if config.controller.kind == "tracker" else None  # another law has no design
     )
     minimum_time = _MINIMUM_TIMES.get(
         assembly.minimum_time_key(config), lambda: assembly.minimum_time_s(config)
     )
     run = assembly.run_offline_with(config, design, minimum_time)
     return {
-        "plan_duration_s": run.design.plan_duration_s,
+        "plan_duration_s": design.plan_duration_s if design is not None else None,
         "t_star_s": minimum_time,
         **run.metrics.as_dict(),
     }

@@ -16,16 +16,10 @@ from dataclasses import dataclass, field
 import can
 import numpy as np
 
-from ballbeam.assembly import plant_parameters, sensor_periods_per_cycle
+from ballbeam.assembly import counts_per_measurement, plant_parameters, sensor_periods_per_cycle
 from ballbeam.config import Config
-from ballbeam.core.control import (
-    ControllerDesign,
-    CycleOutput,
-    coast_cycles,
-    control_cycle,
-    lookahead_voltages,
-    starting_state,
-)
+from ballbeam.core.control import CycleOutput
+from ballbeam.core.law import ControlLaw
 from ballbeam.core.plant import SensorReading
 from ballbeam.errors import BallbeamError
 from ballbeam.logs.recording import RunRecording
@@ -111,7 +105,7 @@ class ControllerDaemon:
     def __init__(
         self,
         config: Config,
-        design: ControllerDesign,
+        law: ControlLaw,
         bus: can.BusABC,
         contract: FrameContract,
         recording: RunRecording,
@@ -123,11 +117,12 @@ class ControllerDaemon:
         """``run_over_fd``: the daemon's end of ``ballbeam run``'s peer link, to tell the
         emulator when the run is over and record its final counters; ``emulator_lock``: the
         robust mutex the emulator holds (runtime/owner_lock.py), to tell a late plant from a
-        dead one."""
+        dead one. ``law``: the control law, in its starting state."""
         self.config = config
         self.run_over_fd = run_over_fd
         self.emulator_lock = emulator_lock
-        self.design = design
+        self.law = law
+        self.angle_per_count, self.position_per_count = counts_per_measurement(config)
         self.bus = bus
         self.recording = recording
         self.stop = stop
@@ -151,7 +146,6 @@ class ControllerDaemon:
         )
         self.period_ns = config.controller.period_ns
         self.n_cycles = round(config.run.duration_s * config.controller.rate_hz)
-        self.state = starting_state(design)
         self._stats = DaemonStats(authenticated=auth is not None)
         self.cycles_since_sensor = 0
         self.period_offset: int | None = None  # plant sample counter − cycle, mod 256
@@ -201,13 +195,13 @@ class ControllerDaemon:
             self.bus,
             timeout_s,
             lambda detail: self.intake.reject(
-                "malformed", detail, self.log_time_ns, self.state.cycle
+                "malformed", detail, self.log_time_ns, self.law.cycle
             ),
             poll_s,
         )
 
     def _handle(self, message: can.Message) -> None:
-        verdict = self.intake.handle(message, self.log_time_ns, self.state.cycle)
+        verdict = self.intake.handle(message, self.log_time_ns, self.law.cycle)
         if (
             self.intake.second_writer_frames >= self.second_writer_limit
             and not self.stop.is_set()
@@ -223,13 +217,13 @@ class ControllerDaemon:
         if verdict == "repeated" and self.config.run.mode == "lockstep":
             # The plant resent a sample because our answer was lost: answer again without
             # advancing the controller (so determinism survives frame loss).
-            self.commands.resend_last(self.log_time_ns, self.state.cycle)
+            self.commands.resend_last(self.log_time_ns, self.law.cycle)
 
     def _event(self, kind: str, detail: str) -> None:
-        self.recording.event(self.log_time_ns, self.state.cycle, kind, detail)
+        self.recording.event(self.log_time_ns, self.law.cycle, kind, detail)
 
     def _fault(self, kind: str, detail: str) -> None:
-        self.recording.fault(self.log_time_ns, self.state.cycle, kind, detail)
+        self.recording.fault(self.log_time_ns, self.law.cycle, kind, detail)
 
     # -- one cycle ----------------------------------------------------------------------------
     def _cycle(self, lateness_ns: int = 0) -> None:
@@ -239,7 +233,7 @@ class ControllerDaemon:
             log.error("recording failed (%s): stopping the run", recorder_error)
             self._stats.end_reason = "recorder_failed"
             self.stop.set("recorder_failed")
-        cycle = self.state.cycle
+        cycle = self.law.cycle
         sample = self.intake.take(time.monotonic_ns())
         reading = None
         if sample is None:
@@ -250,17 +244,17 @@ class ControllerDaemon:
             if self.names_periods:
                 self._learn_period_offset(sample.counter, cycle)
         timeout = self._sensor_timeout_periods()
-        if self.state.prediction is not None and self.cycles_since_sensor >= timeout:
+        if self.law.started and self.cycles_since_sensor >= timeout:
             self._fault_cycle()
             return
         if self.in_fault:
             self.in_fault = False
             self._event("sensor_frames_resumed", f"after {timeout}+ silent periods")
         self._record_sensor(cycle, reading)
-        self.state, output = control_cycle(self.design, self.state, reading, lateness_ns)
+        output = self.law.step(reading, lateness_ns)
         self.last_output = output
         # What the plant is to drive if the next commands do not come in time (real time).
-        self.lookahead_v = lookahead_voltages(self.design, self.state)
+        self.lookahead_v = self.law.lookahead()
         self._stats.cycles += 1
         if reading is None:
             self._stats.coasted_cycles += 1
@@ -273,6 +267,8 @@ class ControllerDaemon:
         self.recording.write(
             REFERENCE, at_ns, ReferenceRecord(cycle, *output.reference, output.reference_input_v)
         )
+        for plan_cycle, plan in output.adopted_plans:
+            self.recording.plan(at_ns, plan_cycle, plan)
         self._watch_theta(output.estimate[0])
         while self.taps_to_log and self.taps_to_log[0][0] <= cycle:
             tap_cycle, step, time_s, change_m_s = self.taps_to_log.pop(0)
@@ -327,7 +323,10 @@ class ControllerDaemon:
         if reading is None or sample is None:
             record = SensorRecord(cycle, 0, 0, 0, 0, 0, math.nan, math.nan)
         else:
-            measurement = self.design.measurement(reading)
+            measurement = (
+                reading.angle_counts * self.angle_per_count,
+                reading.position_counts * self.position_per_count,
+            )
             record = SensorRecord(
                 cycle, 1, sample.counter, sample.status, reading.angle_counts,
                 reading.position_counts,
@@ -351,11 +350,11 @@ class ControllerDaemon:
                         f"no current sensor frame for {silent_s:.3f} s{self._starved_note()}")
             self._stats.end_reason = "plant_lost"
             self.stop.set("plant_lost")
-        cycle = self.state.cycle
+        cycle = self.law.cycle
         self._record_sensor(cycle, None)
         self._command(cycle, 0.0, 0.0, enable=False)
         self.lookahead_v = ()  # the plant holds 0 V
-        self.state = coast_cycles(self.design, self.state, 0.0, 1)
+        self.law.coast(0.0, 1)
         self._stats.cycles += 1
         self._stats.fault_cycles += 1
 
@@ -380,7 +379,7 @@ class ControllerDaemon:
     def _record_timing(self, deadline_ns: int, start_ns: int, skipped: int) -> None:
         end_ns = time.monotonic_ns()
         self.recording.write(TIMING, self.log_time_ns, TimingRecord(
-            self.state.cycle - 1, deadline_ns, start_ns, end_ns, start_ns - deadline_ns, skipped
+            self.law.cycle - 1, deadline_ns, start_ns, end_ns, start_ns - deadline_ns, skipped
         ))
 
     # -- loops --------------------------------------------------------------------------------
@@ -426,16 +425,16 @@ class ControllerDaemon:
         silence_s = self.config.controller.lockstep_timeout_s
         poll_s = self.config.run.lockstep_poll_us * 1e-6
         self.wall_origin_ns = self.log_time_ns
-        while not self.stop.is_set() and self.state.cycle < self.n_cycles:
+        while not self.stop.is_set() and self.law.cycle < self.n_cycles:
             if self.intake.fresh:
                 start_ns = time.monotonic_ns()
-                self.log_time_ns = self.wall_origin_ns + self.state.cycle * self.period_ns
+                self.log_time_ns = self.wall_origin_ns + self.law.cycle * self.period_ns
                 self._cycle()
                 self._record_timing(start_ns, start_ns, 0)
                 continue
             message = self._recv(silence_s, poll_s)
             # Whatever arrives now belongs to the sample of the coming cycle.
-            self.log_time_ns = self.wall_origin_ns + self.state.cycle * self.period_ns
+            self.log_time_ns = self.wall_origin_ns + self.law.cycle * self.period_ns
             if message is None:
                 self._fault("plant_silent", f"no frame for {silence_s} s")
                 self._stats.end_reason = "plant_silent"
@@ -472,7 +471,7 @@ class ControllerDaemon:
         spin_ns = spin_ns_for_this_process(self.config.controller.spin_us)
         ticker = Ticker(self.period_ns, spin_ns=spin_ns, start_ns=origin_ns)
         self.mono_origin_ns, self.wall_origin_ns = origin_ns, self._wall_ns_at(origin_ns)
-        while not self.stop.is_set() and self.state.cycle < self.n_cycles:
+        while not self.stop.is_set() and self.law.cycle < self.n_cycles:
             tick = ticker.wait()
             self.log_time_ns = self.wall_origin_ns + tick.cycle * self.period_ns
             # Read what has arrived, for half a period at most: a flood must not hold the loop
@@ -517,7 +516,7 @@ class ControllerDaemon:
             if self.config.run.mode == "realtime":  # lock-step's log clock is the cycle's
                 self.log_time_ns = max(self.log_time_ns, self._wall_ns())
             # The intake alone: the run is over, so a repeated sample gets no command.
-            self.intake.handle(message, self.log_time_ns, self.state.cycle)
+            self.intake.handle(message, self.log_time_ns, self.law.cycle)
 
     def _wall_ns(self) -> int:
         return self.wall_origin_ns + time.monotonic_ns() - self.mono_origin_ns
@@ -531,12 +530,12 @@ class ControllerDaemon:
         if self.in_fault:
             held_v = 0.0
         # The plant drove the look-ahead sent with the last command, then held its last entry.
-        self.state = coast_cycles(self.design, self.state, held_v, count, self.lookahead_v)
+        self.law.coast(held_v, count, self.lookahead_v)
         self._event("overrun", f"skipped {count} period(s), coasting on the model")
 
     def _shutdown(self) -> None:
         """0 V, disabled — sent a few times since a frame can be lost — then the stop event."""
-        self.commands.shutdown(self.log_time_ns, self.state.cycle)
+        self.commands.shutdown(self.log_time_ns, self.law.cycle)
         if self.run_over_fd is not None and signal_run_over(self.run_over_fd):
             self._await_final_status()
         reason = self.stop.signal_name if self.stop.signal_name else self._stats.end_reason

@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, BinaryIO
 
-from ballbeam.assembly import controller_design
+from ballbeam.assembly import control_law, controller_design
 from ballbeam.config import Config
 from ballbeam.errors import BusError
 from ballbeam.logs import design_record
@@ -119,7 +119,9 @@ def _run_recorded(
     secret: RunKey | bytes | None,
     log_stream: BinaryIO | None,
 ) -> str:
-    design = controller_design(config)  # before touching the bus: a bad config fails fast
+    tracker = config.controller.kind == "tracker"
+    # Before touching the bus: a bad config fails fast.
+    design = controller_design(config) if tracker else None
     # The bus the run goes on, named in its log: "auto" as the launcher resolved it (it says
     # why), or as this daemon does when started by hand.
     bus_choice = os.environ.get(BUS_CHOICE_ENV, "")
@@ -140,15 +142,17 @@ def _run_recorded(
         scheduling.update(probe)
         if measured != config:
             config = measured
-            design = controller_design(config)  # recorded with the config that made it
+            design = controller_design(config) if tracker else None  # as recorded
     contract = FrameContract.load()
     resolved = json.dumps(config.model_dump(mode="json"), sort_keys=True)
     attachments = [
-        (design_record.ATTACHMENT_NAME, design_record.MEDIA_TYPE,
-         design_record.encode_design(design)),
         ("ballbeam.dbc", "text/plain", contract.dbc_text.encode()),
         ("config.resolved.json", "application/json", resolved.encode()),
     ]
+    if design is not None:
+        # The tracker's design replays bit for bit (a re-planning law's plans go on /plans).
+        attachments.insert(0, (design_record.ATTACHMENT_NAME, design_record.MEDIA_TYPE,
+                               design_record.encode_design(design)))
     if config_path is not None:
         # The resolved config above is what the run used; the source file is a courtesy.
         with contextlib.suppress(OSError):
@@ -161,8 +165,10 @@ def _run_recorded(
             "versions": {**package_versions(), "git_revision": git_revision()},
             "run": {
                 "mode": config.run.mode,
+                "controller_kind": config.controller.kind,
                 "plan_kind": config.plan.kind,
-                "plan_duration_s": repr(design.plan_duration_s),
+                **({"plan_duration_s": repr(design.plan_duration_s)} if design is not None
+                   else {}),
                 "period_ns": str(config.controller.period_ns),
                 "sensor_period_ns": str(1_000_000_000 // config.plant.sensor_rate_hz),
                 "bus": f"{config.bus.interface}:{config.bus.channel}",
@@ -191,13 +197,15 @@ def _run_recorded(
         if peer_lock is not None:
             peer_lock.hold()
         emulator_lock = OwnerLock.from_environment(slot=EMULATOR_SLOT)  # the emulator's, held
-        recording = RunRecording(recorder)  # every channel of the log, the live view's too
+        # Every channel of the log, the live view's too.
+        recording = RunRecording(recorder, plans=not tracker)
         if live is not None:
             live.start()
             log.info("live view on %s (Foxglove: Open connection, Foxglove WebSocket)", live.url)
         bus = open_bus(config.bus)
         try:
-            daemon = ControllerDaemon(config, design, bus, contract, recording, stop, auth,
+            law = control_law(config, design)
+            daemon = ControllerDaemon(config, law, bus, contract, recording, stop, auth,
                                       run_over_fd=link_fd, emulator_lock=emulator_lock)
             settle_heap()
             try:

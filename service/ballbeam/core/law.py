@@ -1,0 +1,98 @@
+"""What a controller must provide: the seam between a control law and whatever runs it.
+
+The daemon (over the bus, lock-step or real time), the offline simulation and
+``replay --verify`` drive a law only through :class:`ControlLaw`, one period at a time. A law
+is made in its starting state (its constructor is the start) and then, each period, either
+steps on the period's sensor reading or coasts through periods in which it commands nothing
+of its own. Two laws implement it: :class:`TrackerLaw` (the paper's time-varying LQ tracker,
+``control.py``) and ``replanning_law.ReplanningLaw`` (issue 27's identify-and-re-plan law).
+
+A law must be deterministic in what it is given (no clock, no RNG, no I/O): replay re-runs it
+from the recorded readings and must get every command back bit for bit.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+from ballbeam.core.control import (
+    ControllerDesign,
+    ControllerState,
+    CycleOutput,
+    coast_cycles,
+    control_cycle,
+    lookahead_voltages,
+    starting_state,
+)
+from ballbeam.core.plant import SensorReading
+
+
+class ControlLaw(Protocol):
+    """One control law, carrying its own state from period to period."""
+
+    @property
+    def period_s(self) -> float:
+        """The control period [s]."""
+        ...
+
+    @property
+    def cycle(self) -> int:
+        """Periods stepped or coasted so far: the index of the next one."""
+        ...
+
+    @property
+    def started(self) -> bool:
+        """Whether a first reading has been taken (before it, a lost sensor is no fault)."""
+        ...
+
+    def step(self, reading: SensorReading | None, lateness_ns: int = 0) -> CycleOutput:
+        """One period: the command and what the log records of it (estimate, reference, an
+        adopted plan). ``reading``: None when no valid sample came in time (the first step
+        needs one); ``lateness_ns``: real time, how late the period began."""
+        ...
+
+    def coast(
+        self, held_voltage_v: float, count: int, lookahead_v: tuple[float, ...] = ()
+    ) -> None:
+        """``count`` periods with no command of the law's: skipped periods, or a fault's 0 V.
+        The plant drove ``lookahead_v`` (sent with the last command) one a period, then held
+        its last entry; without one it held ``held_voltage_v``."""
+        ...
+
+    def lookahead(self) -> tuple[float, ...]:
+        """The commands of the next periods, sent with this one for a plant to drive if the
+        next commands are late (real time); () for a law without them."""
+        ...
+
+
+class TrackerLaw:
+    """The paper's tracker (``control.py``) behind the seam: the functions it always ran,
+    over its recorded design."""
+
+    def __init__(self, design: ControllerDesign) -> None:
+        self.design = design
+        self.state: ControllerState = starting_state(design)
+
+    @property
+    def period_s(self) -> float:
+        return self.design.period_s
+
+    @property
+    def cycle(self) -> int:
+        return self.state.cycle
+
+    @property
+    def started(self) -> bool:
+        return self.state.prediction is not None
+
+    def step(self, reading: SensorReading | None, lateness_ns: int = 0) -> CycleOutput:
+        self.state, output = control_cycle(self.design, self.state, reading, lateness_ns)
+        return output
+
+    def coast(
+        self, held_voltage_v: float, count: int, lookahead_v: tuple[float, ...] = ()
+    ) -> None:
+        self.state = coast_cycles(self.design, self.state, held_voltage_v, count, lookahead_v)
+
+    def lookahead(self) -> tuple[float, ...]:
+        return lookahead_voltages(self.design, self.state)
