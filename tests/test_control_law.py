@@ -221,3 +221,29 @@ def test_the_seam_runs_the_tracker_as_before() -> None:
         assert law.step(reading) == expected
         assert law.state == direct
     assert law.started and law.cycle == direct.cycle
+
+
+def test_plans_adopted_while_coasting_come_with_the_next_output_at_their_own_cycles() -> None:
+    """A gap of 25 periods (a fault's 0 V): the re-planning law steps on its own expectation,
+    its plan's clock running on; the plans it adopts meanwhile are handed out with the next
+    step, each at the cycle it took effect (so the daemon records them where replay finds
+    them)."""
+    from ballbeam.core.plant import SensorReading
+
+    config = load_config(PAPER, (*REPLANNING, "run.duration_s=0.2"))
+    trace = run_offline(config).trace
+    law = control_law(config)
+    readings = [
+        SensorReading(int(a), int(p))
+        for a, p in zip(trace.angle_counts.tolist(), trace.position_counts.tolist(), strict=True)
+    ]
+    first = law.step(readings[0])
+    assert [cycle for cycle, _ in first.adopted_plans] == [0]
+    for reading in readings[1:100]:
+        law.step(reading)
+    assert law.lookahead() == ()
+    law.coast(0.0, 25)
+    assert law.cycle == 125
+    output = law.step(readings[125])
+    cycles = [cycle for cycle, _ in output.adopted_plans]
+    assert cycles and cycles == sorted(cycles) and cycles[0] >= 100 and cycles[-1] <= 125

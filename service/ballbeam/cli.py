@@ -333,9 +333,15 @@ def command_replay(args: argparse.Namespace) -> int:
         if result.mismatch is not None:
             mismatch = result.mismatch
             summary["verify_first_mismatch_cycle"] = mismatch.cycle
+            # The re-planning law's filter goes through BLAS (docs/decisions.md, the seam).
+            kernel_note = (
+                "; this law verifies bit for bit only on the BLAS kernel it was recorded with"
+                if result.design_source == "recorded plans" else ""
+            )
             print(
                 f"ballbeam: verify FAILED at cycle {mismatch.cycle} (command #{mismatch.index}): "
-                f"recorded {mismatch.recorded_v!r} V, replayed {mismatch.replayed_v!r} V",
+                f"recorded {mismatch.recorded_v!r} V, replayed {mismatch.replayed_v!r} V"
+                f"{kernel_note}",
                 file=sys.stderr,
             )
             exit_code = 1

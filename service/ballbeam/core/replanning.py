@@ -1,5 +1,5 @@
 """Issue 27's candidate controller: identify the plant, re-plan to its own limit, from any state
-to any target. Pure (no I/O); offline only so far (``ballbeam run`` still uses ``control.py``).
+to any target. Pure (no I/O); ``controller.kind = "replanning"`` runs it (``replanning_law.py``).
 A measured experiment, not yet at issue 27's bounds: docs/decisions.md ("the second
 candidate") has its figures and what is left.
 
