@@ -3,7 +3,8 @@
 It is given the task's target schedule (a change of target re-plans from the state then) and,
 in a replay, the plans the recorded run adopted: every solve of a cycle at which the run
 adopted a plan returns that plan instead of solving, so the re-run follows the recorded plans
-exactly whatever the planner, its solver or the BLAS kernel give today. A cycle at which
+whatever the planner or its solver give today (the law's own filter and re-design still go
+through BLAS: bit for bit on the kernel the run had, docs/decisions.md). A cycle at which
 nothing was recorded solves as the run did; if the re-run then adopts a plan the run did not
 (or does not adopt one it did), the replay says so (``plan_mismatch``).
 """
@@ -21,7 +22,6 @@ from ballbeam.core.planning.arcs import ArcPlan
 from ballbeam.core.plant import SensorReading
 from ballbeam.core.replanning import ReplanningController, Settings
 from ballbeam.core.task import Task
-from ballbeam.errors import PlanningError
 
 T = TypeVar("T")
 # A step of the task takes effect at the first cycle at or after its instant: the cycle's time
@@ -87,7 +87,7 @@ class ReplanningLaw:
     def step(self, reading: SensorReading | None, lateness_ns: int = 0) -> CycleOutput:
         controller = self.controller
         if reading is None and not self.started:
-            raise PlanningError("the first control cycle needs a sensor reading")
+            raise ValueError("the first control cycle needs a sensor reading")  # as the tracker
         target_m = self.task.target_at(self._cycle * self.period_s + _CYCLE_TIME_SLACK_S)
         if target_m != controller.target_m:
             controller.set_target(target_m)
