@@ -14,6 +14,7 @@ import pytest
 
 from ballbeam.assembly import control_law, design_model, plant_floor, run_offline
 from ballbeam.config import load_config
+from ballbeam.core.control import PlanTaken
 from ballbeam.core.law import TrackerLaw
 from ballbeam.core.planning.arcs import plan_arcs
 from ballbeam.evaluation.replay import verify
@@ -51,7 +52,6 @@ def test_the_default_kind_is_the_tracker() -> None:
     ("overrides", "words"),
     [
         (("controller.kind='mpc'",), "'tracker' or 'replanning'"),
-        ((*REPLANNING, "run.mode='realtime'"), "lock-step only"),
         ((*REPLANNING, "task.sine={amplitude_m=0.04, period_s=10.0}"), "no sine tracking"),
     ],
 )
@@ -74,14 +74,19 @@ def test_a_plan_round_trips_through_its_json_message_to_the_bit() -> None:
     start = np.array([math.radians(-40.0), 0.3, 0.05, 0.15])  # rolling, servo turning
     plan = plan_arcs(design_model(config), start, target_m=0.03,
                      voltage_limit_v=4.55, theta_max_rad=math.radians(51.7))
-    text = json.dumps(plan_message(17, plan))
-    cycle, back = plan_from_message(json.loads(text))
-    assert cycle == 17
+    text = json.dumps(plan_message(PlanTaken(17, 15, plan)))
+    taken = plan_from_message(json.loads(text))
+    assert taken.cycle == 17 and taken.request_cycle == 15 and not taken.design
+    back = taken.plan
+    assert back is not None
     for field in dataclasses.fields(plan):
         ours, theirs = getattr(plan, field.name), getattr(back, field.name)
         assert np.array(ours).tobytes() == np.array(theirs).tobytes(), field.name
     times = np.linspace(0.0, plan.duration_s, 101)
     assert plan.sample(times).states.tobytes() == back.sample(times).states.tobytes()
+    # an answer of no plan, and a re-design, round-trip too
+    for taken in (PlanTaken(9, 7, None), PlanTaken(102, 100, None, design=True)):
+        assert plan_from_message(json.loads(json.dumps(plan_message(taken)))) == taken
 
 
 # ---- offline ---------------------------------------------------------------------------------
@@ -140,9 +145,14 @@ def test_lockstep_replanning_rests_at_the_target_near_the_plants_own_floor(
     assert floor is not None
     assert rest_s <= 1.3 * floor.time_s, (rest_s, floor.time_s)
     assert float(np.max(np.abs(x[time_s >= rest_s]))) <= REST_BAND_M
-    # The plans it adopted are in the log, the first at the first cycle.
-    plans = recorded_plans(run_log)
-    assert min(plans) == 0 and len(plans) > 10
+    # The answers it took are in the log, each at least the delay after its request; the
+    # first plan (asked for at the first cycle) at the delay exactly: lock-step waits for it.
+    delay = load_config(PAPER).controller.plan_delay_cycles
+    taken = recorded_plans(run_log).values()
+    assert all(t.cycle >= t.request_cycle + delay for t in taken)
+    plans = [t for t in taken if t.plan is not None]
+    assert min(t.cycle for t in plans) == delay and len(plans) > 10
+    assert any(t.design for t in taken)
 
 
 @pytest.mark.bus
@@ -191,10 +201,14 @@ def test_verify_fails_where_the_re_run_adopts_a_plan_the_log_does_not_record(
 ) -> None:
     run_log = read_log(replanning_log)
     messages = [dict(message) for message in run_log.json_topics[PLANS].messages]
-    dropped = messages.pop(len(messages) // 2)
+    middle = len(messages) // 2
+    while messages[middle].get("design"):
+        middle += 1
+    dropped = messages.pop(middle)
     result = verify(_with_plans(run_log, messages))
+    # the re-run waits for the dropped answer; the next one answers a request it never made
     assert not result.ok and result.plan_mismatch is not None
-    assert f"cycle {dropped['cycle']}" in result.plan_mismatch
+    assert f"outstanding then is of cycle {dropped['request_cycle']}" in result.plan_mismatch
 
 
 def test_the_seam_runs_the_tracker_as_before() -> None:
@@ -237,13 +251,18 @@ def test_plans_adopted_while_coasting_come_with_the_next_output_at_their_own_cyc
         SensorReading(int(a), int(p))
         for a, p in zip(trace.angle_counts.tolist(), trace.position_counts.tolist(), strict=True)
     ]
-    first = law.step(readings[0])
-    assert [cycle for cycle, _ in first.adopted_plans] == [0]
-    for reading in readings[1:100]:
+    delay = config.controller.plan_delay_cycles
+    outputs = [law.step(reading) for reading in readings[: delay + 1]]
+    taken = [t for output in outputs for t in output.adopted_plans]
+    assert [(t.cycle, t.request_cycle) for t in taken] == [(delay, 0)]  # the first plan
+    # no plan yet: no plan's drive (what is commanded is the angle guard's, at -52°)
+    assert all(output.reference_input_v == 0.0 for output in outputs[:delay])
+    assert outputs[delay].reference_input_v != 0.0
+    for reading in readings[delay + 1 : 100]:
         law.step(reading)
     assert law.lookahead() == ()
     law.coast(0.0, 25)
     assert law.cycle == 125
     output = law.step(readings[125])
-    cycles = [cycle for cycle, _ in output.adopted_plans]
+    cycles = [taken.cycle for taken in output.adopted_plans]
     assert cycles and cycles == sorted(cycles) and cycles[0] >= 100 and cycles[-1] <= 125

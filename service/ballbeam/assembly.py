@@ -40,8 +40,8 @@ from ballbeam.core.tracker import (
 from ballbeam.errors import ConfigError, PlanningError
 
 if TYPE_CHECKING:  # the floor's module loads the LP solver: only when a floor is asked for
+    from ballbeam.core.control import PlanTaken
     from ballbeam.core.floor import OwnFloor
-    from ballbeam.core.planning.arcs import ArcPlan
     from ballbeam.core.replanning import Settings
 
 DEFAULT_POSITION_NOISE_M = 2e-4
@@ -538,11 +538,16 @@ def replanning_settings(config: Config) -> Settings:
 def control_law(
     config: Config,
     design: ControllerDesign | None = None,
-    recorded_plans: Mapping[int, ArcPlan] | None = None,
+    recorded_plans: Mapping[tuple[int, bool], PlanTaken] | None = None,
+    *,
+    plans_in_process: bool = True,
 ) -> ControlLaw:
     """The law ``controller.kind`` names, in its starting state. The tracker runs ``design``
-    (default: the config's); the re-planner takes ``recorded_plans`` in a replay."""
+    (default: the config's); the re-planner solves its plans in this process (offline), or
+    with ``plans_in_process`` False leaves its requests to the caller's planner (the daemon),
+    or takes ``recorded_plans``, the answers a run took (a replay)."""
     if config.controller.kind == "replanning":
+        from ballbeam.core.replanning import solve_request
         from ballbeam.core.replanning_law import ReplanningLaw
 
         return ReplanningLaw(
@@ -551,7 +556,9 @@ def control_law(
             make_task(config),
             encoder_step_rad=config.sensors.encoder_step_rad,
             adc_step_m=config.sensors.adc_step_m(physical_constants(config).beam_length_m),
-            recorded_plans=recorded_plans,
+            plan_delay_cycles=config.controller.plan_delay_cycles,
+            planner=solve_request if plans_in_process and recorded_plans is None else None,
+            recorded=recorded_plans,
         )
     return TrackerLaw(design if design is not None else controller_design(config))
 

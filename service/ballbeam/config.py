@@ -289,8 +289,14 @@ ControllerKind = Literal["tracker", "replanning"]
 class ControllerSection(_Section):
     kind: ControllerKind = Field(
         "tracker", description="the control law: the paper's time-varying LQ tracker of one "
-        "plan (\"tracker\"), or issue 27's identify-and-re-plan law (\"replanning\": "
-        "lock-step and offline only, its plans are solved inside the cycle)"
+        "plan (\"tracker\"), or issue 27's identify-and-re-plan law (\"replanning\": its "
+        "plans are solved by a planner process beside the loop)"
+    )
+    plan_delay_cycles: int = Field(
+        2, ge=1, le=1000, description="re-planning law: the fewest cycles from a plan's request "
+        "to the cycle it takes effect (lock-step waits for it then, so lock-step equals "
+        "offline); 2: a request sent after one cycle's command and answered within the next "
+        "period is read at the start of the one after"
     )
     rate_hz: int = Field(1000, ge=10, le=20000)
     sensor_timeout_periods: int = Field(
@@ -826,12 +832,6 @@ class Config(_Section):
     def _controller_fits_the_run(self) -> None:
         if self.controller.kind != "replanning":
             return
-        if self.run.mode == "realtime":
-            raise ValueError(
-                'controller.kind = "replanning" runs in lock-step only (run.mode = "lockstep"): '
-                "its plans are solved inside the 1 kHz cycle, which a solve (tens of ms) "
-                "would overrun on wall time"
-            )
         if self.task.sine is not None:
             raise ValueError(
                 'controller.kind = "replanning" brings the ball to targets (task.target_m, '

@@ -378,6 +378,17 @@ def starting_state(design: ControllerDesign) -> ControllerState:
     return ControllerState(lateness=starting_watch(design.guard))
 
 
+class PlanTaken(NamedTuple):
+    """A re-planning law took its planner's answer at ``cycle``: the plan (None: the planner
+    had none; the law kept its plan) solved for the request of ``request_cycle``, or
+    (``design``) the re-design of the plant as identified then."""
+
+    cycle: int
+    request_cycle: int
+    plan: ArcPlan | None
+    design: bool = False
+
+
 class CycleOutput(NamedTuple):
     """One cycle's result (a named tuple: one is built every cycle, see ControllerState)."""
 
@@ -387,9 +398,9 @@ class CycleOutput(NamedTuple):
     measured: bool  # False when the cycle coasted on the observer
     reference: Row4  # x_d tracked this cycle, its position in x
     reference_input_v: float  # u_d at the same path position
-    # A re-planning law: the plans it adopted since its last output (a coasted period may
-    # adopt one too), each with the cycle from which it took effect.
-    adopted_plans: tuple[tuple[int, ArcPlan], ...] = ()
+    # A re-planning law: the planner's answers it took since its last output (a coasted
+    # period may take one too), each with the cycle from which it took effect.
+    adopted_plans: tuple[PlanTaken, ...] = ()
 
 
 def predict(observer: ObserverLaw, estimate: Row4, input_v: float, ball_ratio: float = 1.0) -> Row4:

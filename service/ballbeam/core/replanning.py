@@ -47,9 +47,7 @@ Each 1 ms cycle:
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Any, TypeVar
 
 import numpy as np
 import scipy.linalg
@@ -81,7 +79,6 @@ _OUTLIER_SIGMAS = 6.0
 # the problem's own units, and its iteration bound.
 _RESHAPE_TOLERANCE = 1e-9
 _RESHAPE_ITERATIONS = 8
-PlanT = TypeVar("PlanT")
 
 
 class WindowedLeastSquares:
@@ -515,6 +512,136 @@ def _design(identified: Identified, s: Settings) -> _Design:
     )
 
 
+@dataclass(frozen=True)
+class PlanRequest:
+    """What the law would pass to the planner at its step ``cycle``: the state, target,
+    identified model and limits, and (a warm re-plan) the plan in force with the choice the
+    law made of its answers. :func:`solve_plan_request` answers it, in this process or in
+    another (the request pickles: floats, tuples and an ``ArcPlan``)."""
+
+    cycle: int  # the controller's step whose estimate the request is of
+    kind: str  # "cold" (the grid planner), "near" (four arcs, else cold), "warm" (a re-plan)
+    state: tuple[float, float, float, float]  # (θ, θ̇, ẋ, x) planned from
+    target_m: float
+    pole_per_s: float
+    alpha: float
+    gamma: float
+    drive_limit_v: float
+    theta_max_rad: float
+    # "warm": the plan in force, the time into it, and what the law decided from the estimate
+    plan: ArcPlan | None = None
+    elapsed_s: float = 0.0
+    far: bool = False  # the ball is far off the plan: a detour is taken
+    moved: bool = False  # the identified model moved since the plan was made
+    reshape: bool = False  # Settings.reshape
+    significant: bool = False  # the ball's miss is past reshape_sigmas
+    reshape_max_v: float = 0.0
+    headroom_v: float = 0.0
+    cold_state: tuple[float, float, float, float] | None = None  # a detour's cold plan from
+
+
+@dataclass(frozen=True)
+class PlanAnswer:
+    """The planner's answer to the request of ``request_cycle``: a plan for the request's
+    state at that cycle (a law adopting it later samples it that much further on), or None
+    (the law keeps its plan); ``counts``: the solves made, for the controller's tallies;
+    ``error``: a failure other than the planner finding no plan (PlanningError), in words."""
+
+    request_cycle: int
+    plan: ArcPlan | None
+    counts: tuple[str, ...] = ()
+    error: str | None = None
+
+
+@dataclass(frozen=True)
+class DesignRequest:
+    """A re-design the law wants: the plant as identified at its step ``cycle`` (γ the
+    filter's then, ``gamma_error`` of it its own error state, re-based when the design is
+    taken)."""
+
+    cycle: int
+    identified: Identified
+    settings: Settings
+    gamma_error: float = 0.0
+
+
+@dataclass(frozen=True)
+class DesignAnswer:
+    request_cycle: int
+    design: _Design
+
+
+def solve_design_request(request: DesignRequest) -> DesignAnswer:
+    """The design (observer, tracker, terminal set, guard) of the identified plant. Pure."""
+    return DesignAnswer(request.cycle, _design(request.identified, request.settings))
+
+
+def solve_request(request: PlanRequest | DesignRequest) -> PlanAnswer | DesignAnswer:
+    """What the planner does with a request of either kind."""
+    if isinstance(request, DesignRequest):
+        return solve_design_request(request)
+    return solve_plan_request(request)
+
+
+def solve_plan_request(request: PlanRequest) -> PlanAnswer:
+    """The plan the law asked for: the solves (and the choice among them) it used to make
+    inside its cycle. Pure; PlanningError where the grid planner finds no plan is an answer
+    of None."""
+    r = request
+    params = _Params(r.pole_per_s, r.alpha, r.gamma)
+    state = np.array(r.state)
+    if r.kind == "warm":
+        assert r.plan is not None
+        return _solve_warm(r, params, state)
+    if r.kind == "near":
+        empty = ArcPlan((), (), (), (0.0, 0.0, 0.0, 0.0), r.target_m, r.drive_limit_v,
+                        r.theta_max_rad, params.pole_per_s, params.alpha, params.gamma)
+        found = replan(empty, 0.0, state, target_m=r.target_m, params=params)
+        if found is not None:
+            return PlanAnswer(r.cycle, found, ("near",))
+    return _solve_cold(r, state)
+
+
+def _solve_cold(r: PlanRequest, state: np.ndarray, counts: tuple[str, ...] = ()) -> PlanAnswer:
+    try:
+        plan = plan_arcs(
+            LinearModel.from_gains(r.alpha, r.pole_per_s, r.gamma, _C),
+            state,
+            target_m=r.target_m,
+            voltage_limit_v=r.drive_limit_v,
+            theta_max_rad=r.theta_max_rad,
+        )
+    except PlanningError as error:
+        return PlanAnswer(r.cycle, None, (*counts, "cold"), error=f"no plan: {error}")
+    return PlanAnswer(r.cycle, plan, (*counts, "cold"))
+
+
+def _solve_warm(r: PlanRequest, params: _Params, from_state: np.ndarray) -> PlanAnswer:
+    plan = r.plan
+    assert plan is not None
+    warm = replace(plan, voltage_limit_v=r.drive_limit_v)
+    new = replan(warm, r.elapsed_s, from_state, target_m=r.target_m, params=params)
+    counts: tuple[str, ...] = ("replan",)
+    keeps_arcs = new is not None and len(new.input_v) <= len(plan.shifted(r.elapsed_s)[0])
+    if new is not None and (keeps_arcs or r.far or (r.moved and not r.reshape)):
+        return PlanAnswer(r.cycle, new, counts)
+    if new is None:
+        counts += ("missed",)
+    if r.reshape and (r.significant or r.moved):
+        # no time-optimal root without a detour: the remaining arcs' inputs absorb the
+        # estimate's error (and a model's change) in the headroom kept for it
+        shaped = reshape_remainder(
+            plan, r.elapsed_s, from_state, params=params,
+            voltage_max_v=r.reshape_max_v, voltage_scale_v=r.headroom_v,
+            theta_limit_rad=r.theta_max_rad, voltage_limit_v=r.drive_limit_v,
+        )
+        if shaped is not None:
+            return PlanAnswer(r.cycle, shaped, (*counts, "reshaped"))
+    if (r.far or (r.moved and new is None)) and r.cold_state is not None:
+        return _solve_cold(r, np.array(r.cold_state), counts)
+    return PlanAnswer(r.cycle, None, counts)
+
+
 @dataclass
 class CycleRecord:
     """What one cycle did (for plots and metrics)."""
@@ -554,6 +681,15 @@ class ReplanningController:
     _ball_from: int = field(init=False, default=0)
     _gamma_error: float = field(init=False, default=0.0)  # the filter's δγ (estimate_gamma)
     _covariance: np.ndarray = field(init=False, default_factory=lambda: np.zeros((5, 5)))
+    # Deferred planning (the law over a planner): a plan wanted is a request, answered later
+    # through ``adopt``; at most one is outstanding (a newer one is dropped meanwhile), and
+    # ``issued`` is the request this step made, for whoever runs the planner to take.
+    deferred: bool = field(init=False, default=False)
+    outstanding: PlanRequest | None = field(init=False, default=None)
+    issued: PlanRequest | None = field(init=False, default=None)
+    # ... and so the re-design from each new identification (Riccati equations: tens of ms)
+    design_outstanding: DesignRequest | None = field(init=False, default=None)
+    design_issued: DesignRequest | None = field(init=False, default=None)
 
     def __post_init__(self) -> None:
         s = self.settings
@@ -592,13 +728,86 @@ class ReplanningController:
 
     def set_target(self, target_m: float) -> None:
         self.target_m = float(target_m)
-        self.plan = None
+        self._drop_plan()
         self.terminal = False
 
-    def _solve(self, solver: Callable[..., PlanT], *args: Any, **kwargs: Any) -> PlanT:
-        """Every plan the law makes is solved here (``plan_arcs``, ``replan``,
-        ``reshape_remainder``): the hook through which a replay injects the recorded plans."""
-        return solver(*args, **kwargs)
+    def _drop_plan(self) -> None:
+        """No plan in force; an answer still to come is of the state before (not adopted)."""
+        self.plan = None
+        self.outstanding = None
+
+    def _request(self, request: PlanRequest) -> None:
+        """Every plan the law makes is asked for here: solved now and adopted, or (deferred)
+        issued, unless one is outstanding (the planner never falls behind: the next request
+        is of a newer state)."""
+        if self.deferred:
+            if self.outstanding is None:
+                self.outstanding = self.issued = request
+            return
+        self.outstanding = request
+        self.adopt(solve_plan_request(request))
+
+    def adopt(self, answer: PlanAnswer) -> bool:
+        """Take the answer to the outstanding request: its plan (if any) is in force from
+        now, timed from the request's cycle (it was made for the state then). False (and
+        nothing changes) for an answer to another request."""
+        request = self.outstanding
+        if request is None or answer.request_cycle != request.cycle:
+            return False
+        self.outstanding = None
+        for count in answer.counts:
+            if count == "replan":
+                self.replans += 1
+            elif count == "missed":
+                self.missed += 1
+            elif count == "reshaped":
+                self.reshaped += 1
+            elif count == "cold":
+                self.cold_plans += 1
+            elif count == "near":
+                self.near_plans += 1
+        if answer.plan is not None and not self.terminal:
+            self.plan = answer.plan
+            self.plan_start_cycle = request.cycle
+        return True
+
+    def _request_design(self, request: DesignRequest) -> None:
+        if self.deferred:
+            if self.design_outstanding is None:
+                self.design_outstanding = self.design_issued = request
+            return
+        self.design_outstanding = request
+        self.adopt_design(solve_design_request(request))
+
+    def adopt_design(self, answer: DesignAnswer) -> bool:
+        """Take the re-design of the outstanding identification: the filter's γ error is
+        re-based on the γ the design took (what it learnt since stays). False (and nothing
+        changes) for an answer to another request."""
+        request = self.design_outstanding
+        if request is None or answer.request_cycle != request.cycle:
+            return False
+        self.design_outstanding = None
+        self._gamma_error -= request.gamma_error
+        self.design = answer.design
+        return True
+
+    def _plan_request(self, kind: str, state: np.ndarray) -> PlanRequest:
+        d = self.design
+        p = d.identified.params
+        return PlanRequest(
+            cycle=self.cycle, kind=kind, state=_row(state), target_m=self.target_m,
+            pole_per_s=p.pole_per_s, alpha=p.alpha, gamma=p.gamma,
+            drive_limit_v=d.drive_limit_v,
+            theta_max_rad=self.settings.theta_limit_rad - self.settings.plan_theta_margin_rad,
+        )
+
+    def _clipped(self, state: np.ndarray | None) -> np.ndarray:
+        """The state to plan from (default: the estimate), its angle inside the plan's."""
+        s = self.settings
+        state = (self.estimate if state is None else state).copy()
+        limit = s.theta_limit_rad - s.plan_theta_margin_rad
+        state[THETA] = float(np.clip(state[THETA], -limit, limit))
+        return state
 
     # --- one cycle --------------------------------------------------------------------
 
@@ -623,13 +832,15 @@ class ReplanningController:
         self._learn()
         if self.cycle and self.cycle % s.identify_every == 0:
             identified = self._identified()
+            gamma_error = 0.0
             if s.estimate_gamma:  # γ is the filter's: the design takes it, the state re-based
+                gamma_error = self._gamma_error
                 identified = replace(
-                    identified, gamma=d.identified.gamma + self._gamma_error,
+                    identified, gamma=d.identified.gamma + gamma_error,
                     gamma_std=math.sqrt(float(self._covariance[4, 4])),
                 )
-                self._gamma_error = 0.0
-            self.design = d = _design(identified, s)
+            self._request_design(DesignRequest(self.cycle, identified, s, gamma_error))
+            d = self.design
         record = self._drive()
         command = self._compensate(record.plan_drive_v)
         record.command_v = command
@@ -720,39 +931,9 @@ class ReplanningController:
 
     def _plan_from_estimate(self, near: bool = False, state: np.ndarray | None = None) -> None:
         """A fresh plan from the estimate (or ``state``); ``near``: close to the target, where
-        the four-arc guess solves it directly (no grid plan)."""
-        d = self.design
-        s = self.settings
-        state = (self.estimate if state is None else state).copy()
-        limit = s.theta_limit_rad - s.plan_theta_margin_rad
-        state[THETA] = float(np.clip(state[THETA], -limit, limit))
-        keep = self.plan
-        if near:
-            p = d.identified.params
-            empty = ArcPlan((), (), (), (0.0, 0.0, 0.0, 0.0), self.target_m, d.drive_limit_v,
-                            limit, p.pole_per_s, p.alpha, p.gamma)
-            found = self._solve(replan, empty, 0.0, state, target_m=self.target_m, params=p)
-            if found is not None:
-                self.plan = found
-                self.plan_start_cycle = self.cycle
-                self.near_plans += 1
-                return
-        try:
-            self.plan = self._solve(
-                plan_arcs,
-                d.identified.model(),
-                state,
-                target_m=self.target_m,
-                voltage_limit_v=d.drive_limit_v,
-                theta_max_rad=limit,
-            )
-        except PlanningError:
-            if keep is None:
-                self.plan = None
-            return
-        finally:
-            self.cold_plans += 1
-        self.plan_start_cycle = self.cycle
+        the four-arc guess solves it directly (no grid plan). A plan not found keeps the
+        plan in force."""
+        self._request(self._plan_request("near" if near else "cold", self._clipped(state)))
 
     def _elapsed(self) -> float:
         return (self.cycle - self.plan_start_cycle) * self.settings.period_s
@@ -761,7 +942,7 @@ class ReplanningController:
         d = self.design
         if self.terminal and self._left_terminal_set():
             self.terminal = False
-            self.plan = None
+            self._drop_plan()
             self._plan_from_estimate(near=True)
         if not self.terminal and self.plan is None:
             if self.cycle and self._in_terminal_set():
@@ -781,8 +962,12 @@ class ReplanningController:
                 else:  # outside the terminal set: a (small) minimum-time move to it
                     self._plan_from_estimate(near=True)
                     plan = self.plan
-        if self.terminal or plan is None:
+        if self.terminal:
             drive = -float(d.K_terminal @ self._error())
+            reference = np.array([0.0, 0.0, 0.0, self.target_m])
+            feedforward = 0.0
+        elif plan is None:  # no plan yet (it is being solved): nothing to track, no drive
+            drive = 0.0
             reference = np.array([0.0, 0.0, 0.0, self.target_m])
             feedforward = 0.0
         else:
@@ -802,7 +987,7 @@ class ReplanningController:
         s = self.settings
         plan = self.plan
         assert plan is not None
-        if (self.cycle - self.plan_start_cycle) % s.replan_every:
+        if (self.cycle - self.plan_start_cycle) % s.replan_every or self.outstanding is not None:
             return
         elapsed = self._elapsed()
         edges = plan.switch_times_s
@@ -814,45 +999,21 @@ class ReplanningController:
         # the plan's own servo state, the estimated ball (absolute position); a re-plan is
         # for the identified model and drive as they are now
         from_state = np.array([on_plan[0], on_plan[1], est[2], est[3]])
-        warm = replace(plan, voltage_limit_v=d.drive_limit_v)
-        new = self._solve(
-            replan, warm, elapsed, from_state, target_m=self.target_m, params=d.identified.params
-        )
-        self.replans += 1
         moved = _moved(plan, d.identified.params, d.drive_limit_v, s.model_change)
+        miss = np.array([est[2] - on_plan[2], est[3] - on_plan[3] - plan.target_m])
         if s.detour_sigmas is None:
             far = abs(est[3] - (on_plan[3] + plan.target_m)) > s.detour_position_m or abs(
                 est[2] - on_plan[2]
             ) > s.detour_speed_m_s
         else:
-            miss = np.array([est[2] - on_plan[2], est[3] - on_plan[3] - plan.target_m])
             far = float(miss @ d.ball_information @ miss) > s.detour_sigmas**2
-        keeps_arcs = new is not None and len(new.input_v) <= len(plan.shifted(elapsed)[0])
-        if new is not None and (keeps_arcs or far or (moved and not s.reshape)):
-            self.plan = new
-            self.plan_start_cycle = self.cycle
-            return
-        if new is None:
-            self.missed += 1
-        miss = np.array([est[2] - on_plan[2], est[3] - on_plan[3] - plan.target_m])
-        significant = float(miss @ d.ball_information @ miss) > s.reshape_sigmas**2
-        if s.reshape and (significant or moved):
-            # no time-optimal root without a detour: the remaining arcs' inputs absorb the
-            # estimate's error (and a model's change) in the headroom kept for it
-            shaped = self._solve(
-                reshape_remainder,
-                plan, elapsed, from_state, params=d.identified.params,
-                voltage_max_v=d.reshape_max_v, voltage_scale_v=d.headroom_v,
-                theta_limit_rad=s.theta_limit_rad - s.plan_theta_margin_rad,
-                voltage_limit_v=d.drive_limit_v,
-            )
-            if shaped is not None:
-                self.plan = shaped
-                self.plan_start_cycle = self.cycle
-                self.reshaped += 1
-                return
-        if far or (moved and new is None):
-            self._plan_from_estimate(state=from_state if moved else None)
+        self._request(replace(
+            self._plan_request("warm", from_state),
+            plan=plan, elapsed_s=elapsed, far=bool(far), moved=moved, reshape=s.reshape,
+            significant=float(miss @ d.ball_information @ miss) > s.reshape_sigmas**2,
+            reshape_max_v=d.reshape_max_v, headroom_v=d.headroom_v,
+            cold_state=_row(self._clipped(from_state if moved else None)),
+        ))
 
     def _ramp_v(self) -> float:
         """Twice the σ of the terminal drive the estimate's error carries: from the design's
@@ -880,6 +1041,10 @@ def _moved(plan: ArcPlan, params: _Params, drive_v: float, tolerance: float) -> 
         (plan.pole_per_s, params.pole_per_s), (plan.gamma, params.gamma),
     )
     return any(abs(new - old) > tolerance * abs(old) for old, new in pairs)
+
+
+def _row(state: np.ndarray) -> tuple[float, float, float, float]:
+    return (float(state[0]), float(state[1]), float(state[2]), float(state[3]))
 
 
 def _dead_zone(command_v: float, deadzone_v: float) -> float:

@@ -1,54 +1,63 @@
-"""Issue 27's re-planning law (``replanning.py``) behind the controller seam (``law.py``).
+"""Issue 27's re-planning law (``replanning.py``) behind the controller seam (``law.py``), its
+plans solved off the cycle.
 
-It is given the task's target schedule (a change of target re-plans from the state then) and,
-in a replay, the plans the recorded run adopted: every solve of a cycle at which the run
-adopted a plan returns that plan instead of solving, so the re-run follows the recorded plans
-whatever the planner or its solver give today (the law's own filter and re-design still go
-through BLAS: bit for bit on the kernel the run had, docs/decisions.md). A cycle at which
-nothing was recorded solves as the run did; if the re-run then adopts a plan the run did not
-(or does not adopt one it did), the replay says so (``plan_mismatch``).
+The law never solves inside its step: when it wants a plan it issues a request (the state,
+target, identified model and limits the solver would get; ``replanning.PlanRequest``), which
+whoever runs it hands to a planner: ``solve_plan_request`` in this process (``ballbeam
+simulate``), or the daemon's planner process (``runtime/planner.py``). The answer comes back
+through :meth:`ReplanningLaw.offer` and is taken at the first step at least
+``plan_delay_cycles`` after the request, or later if it came later (real time: the cycle it
+arrived). One request is outstanding at most; a plan wanted meanwhile is asked for afresh from
+the state after the answer. So offline and lock-step (where the daemon waits for each answer
+before the cycle it is due) take the same answers at the same cycles, whatever the solver's
+speed.
+
+Each answer taken is in the step's output (``PlanTaken``: the cycle, the request's cycle,
+the plan or none), recorded on ``/plans``. A replay gives the law the recorded answers
+(``recorded``): each is offered at the cycle the run took it, nothing is solved, and the
+re-run follows the run's plans whatever today's planner would give (the law's own filter and
+re-design still go through BLAS: bit for bit on the kernel the run had, docs/decisions.md).
+If the re-run's request is not the one the recorded answer answered, the replay says so
+(``plan_mismatch``).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from typing import Any, TypeVar
 
 import numpy as np
 
-from ballbeam.core.control import CycleOutput
+from ballbeam.core.control import CycleOutput, PlanTaken
 from ballbeam.core.model import as_row4
-from ballbeam.core.planning.arcs import ArcPlan
 from ballbeam.core.plant import SensorReading
-from ballbeam.core.replanning import ReplanningController, Settings
+from ballbeam.core.replanning import (
+    DesignAnswer,
+    DesignRequest,
+    PlanAnswer,
+    PlanRequest,
+    ReplanningController,
+    Settings,
+    solve_design_request,
+)
 from ballbeam.core.task import Task
 
-T = TypeVar("T")
 # A step of the task takes effect at the first cycle at or after its instant: the cycle's time
 # k·period is computed with rounding, so the instant is looked up this much later.
 _CYCLE_TIME_SLACK_S = 1e-9
 
-
-class _Controller(ReplanningController):
-    """The controller with its solves answered from recorded plans where there are some."""
-
-    recorded: Mapping[int, ArcPlan] | None = None
-    law_cycle: int = 0  # the cycle the law is stepping (the daemon's count)
-
-    def _solve(self, solver: Callable[..., T], *args: Any, **kwargs: Any) -> T:
-        if self.recorded is not None:
-            plan = self.recorded.get(self.law_cycle)
-            if plan is not None:
-                return plan  # type: ignore[return-value]  # every solver's answer is a plan
-        return super()._solve(solver, *args, **kwargs)
+Request = PlanRequest | DesignRequest
+Answer = PlanAnswer | DesignAnswer
+Planner = Callable[[Request], Answer]
 
 
 class ReplanningLaw:
     """:class:`~ballbeam.core.replanning.ReplanningController` as a :class:`ControlLaw`.
 
     ``encoder_step_rad`` and ``adc_step_m`` turn sensor counts into θ and x; ``task`` gives
-    the target at each cycle's time; ``recorded_plans`` (a replay): the plan adopted at each
-    cycle, by cycle."""
+    the target at each cycle's time; ``plan_delay_cycles``: the fewest cycles from a request
+    to the step that takes its answer (≥ 1); ``planner``: solves requests in this process
+    (None: the caller takes them, :meth:`take_request`, and offers the answers);
+    ``recorded`` (a replay): the answers the run took, by the cycle it took each."""
 
     def __init__(
         self,
@@ -57,19 +66,31 @@ class ReplanningLaw:
         task: Task,
         encoder_step_rad: float,
         adc_step_m: float,
-        recorded_plans: Mapping[int, ArcPlan] | None = None,
+        *,
+        plan_delay_cycles: int,
+        planner: Planner | None = None,
+        recorded: Mapping[tuple[int, bool], PlanTaken] | None = None,
     ) -> None:
+        if plan_delay_cycles < 1:
+            raise ValueError("a plan takes effect one cycle after its request at the soonest")
         self.task = task
         self.encoder_step_rad = encoder_step_rad
         self.adc_step_m = adc_step_m
-        self.controller = _Controller(
+        self.plan_delay_cycles = plan_delay_cycles
+        self.planner = planner
+        self.recorded = recorded
+        self.controller = ReplanningController(
             settings, np.array(initial_state, dtype=float), target_m=task.target_at(0.0)
         )
-        self.controller.recorded = recorded_plans
+        self.controller.deferred = True
         self._cycle = 0
-        self._adopted: list[tuple[int, ArcPlan]] = []  # since the last output
-        # Set when a replayed cycle adopted a plan other than the recorded one, or none where
-        # one was recorded: the first such difference, in words.
+        self._first_cycle = 0  # the law's cycle of the controller's first step
+        # offered, by (a design's?, the request's cycle)
+        self._answers: dict[tuple[bool, int], Answer] = {}
+        self._issued: list[Request] = []  # for the caller to take
+        self._taken: list[PlanTaken] = []  # since the last output
+        # Set when a replayed cycle took a recorded answer to a request the re-run did not
+        # make (or has none outstanding): the first such difference, in words.
         self.plan_mismatch: str | None = None
 
     @property
@@ -84,13 +105,50 @@ class ReplanningLaw:
     def started(self) -> bool:
         return self.controller.cycle > 0
 
+    def request_cycle(self, request: Request) -> int:
+        """The law's cycle at which ``request`` was made."""
+        return self.law_cycle(request.cycle)
+
+    def law_cycle(self, controller_cycle: int) -> int:
+        """The law's cycle of the controller's step ``controller_cycle`` (the law's count
+        includes the periods coasted before the first reading)."""
+        return controller_cycle + self._first_cycle
+
+    def take_requests(self) -> list[Request]:
+        """The requests the steps since the last call issued, for the caller's planner."""
+        requests, self._issued = self._issued, []
+        return requests
+
+    def _outstanding(self, design: bool) -> Request | None:
+        return self.controller.design_outstanding if design else self.controller.outstanding
+
+    @property
+    def answer_due_cycle(self) -> int | None:
+        """The first cycle whose step takes the answer to an outstanding request that is not
+        in yet (lock-step waits for it before that step); None when nothing is awaited."""
+        due = [
+            self.request_cycle(request) + self.plan_delay_cycles
+            for design in (True, False)
+            if (request := self._outstanding(design)) is not None
+            and (design, request.cycle) not in self._answers
+        ]
+        return min(due, default=None)
+
+    def offer(self, answer: Answer) -> None:
+        """The planner's answer to a request (taken at the first step it is due; one to a
+        request no longer outstanding is dropped then)."""
+        self._answers[isinstance(answer, DesignAnswer), answer.request_cycle] = answer
+
     def step(self, reading: SensorReading | None, lateness_ns: int = 0) -> CycleOutput:
         controller = self.controller
         if reading is None and not self.started:
             raise ValueError("the first control cycle needs a sensor reading")  # as the tracker
+        if not self.started:
+            self._first_cycle = self._cycle
         target_m = self.task.target_at(self._cycle * self.period_s + _CYCLE_TIME_SLACK_S)
         if target_m != controller.target_m:
             controller.set_target(target_m)
+        self._take_answer()
         if reading is None:
             # No sample: the law is told what its estimate expects (a measurement that
             # corrects nothing; the identification learns nothing new from it).
@@ -99,19 +157,21 @@ class ReplanningLaw:
         else:
             theta_rad = reading.angle_counts * self.encoder_step_rad
             position_m = reading.position_counts * self.adc_step_m
-        before = controller.plan
-        controller.law_cycle = self._cycle
         record = controller.step(theta_rad, position_m)
-        adopted = controller.plan if controller.plan is not before else None
-        self._check_adoption(adopted)
-        if adopted is not None:
-            self._adopted.append((self._cycle, adopted))
+        issued = [r for r in (controller.design_issued, controller.issued) if r is not None]
+        controller.issued = controller.design_issued = None
+        if self.recorded is None:  # (a replay answers from the log)
+            for request in issued:
+                if self.planner is not None:
+                    self.offer(self.planner(request))
+                else:
+                    self._issued.append(request)
         self._cycle += 1
         estimate = record.estimate if record.estimate is not None else controller.estimate
-        plans, self._adopted = tuple(self._adopted), []
+        taken, self._taken = tuple(self._taken), []
         return CycleOutput(
             record.command_v, record.plan_drive_v, as_row4(estimate), reading is not None,
-            as_row4(record.plan_state), record.feedforward_v, plans,
+            as_row4(record.plan_state), record.feedforward_v, taken,
         )
 
     def coast(
@@ -120,28 +180,65 @@ class ReplanningLaw:
         """Periods without a sample: each is stepped on the estimate's own expectation (the
         plan's clock runs on); before the first reading only the count advances. The law
         models its own commands through them, not the held one (its model of the drive is
-        internal): a gap of a few periods costs a small correction afterwards. Plans adopted
+        internal): a gap of a few periods costs a small correction afterwards. Answers taken
         meanwhile come with the next step's output."""
         if not self.started:
             self._cycle += count
             return
         for _ in range(count):
-            self._adopted = list(self.step(None).adopted_plans)  # kept for the next output
+            self._taken = list(self.step(None).adopted_plans)  # kept for the next output
 
     def lookahead(self) -> tuple[float, ...]:
         return ()
 
-    def _check_adoption(self, adopted: ArcPlan | None) -> None:
-        recorded = self.controller.recorded
-        if recorded is None or self.plan_mismatch is not None:
-            return
-        expected = recorded.get(self._cycle)
-        if expected is not None and adopted is not expected:
-            self.plan_mismatch = (
-                f"the log records a plan adopted at cycle {self._cycle}; the re-run adopted "
-                + ("none" if adopted is None else "another")
-            )
-        elif expected is None and adopted is not None:
-            self.plan_mismatch = (
-                f"the re-run adopts a plan at cycle {self._cycle}; the log records none there"
-            )
+    def _take_answer(self) -> None:
+        """Before the step: the outstanding requests' answers that are in and due (the
+        re-design first, as the plan is of the state after it)."""
+        controller = self.controller
+        if self.recorded is not None:
+            self._offer_recorded()
+        for design in (True, False):
+            request = self._outstanding(design)
+            for key in [key for key in self._answers if key[0] == design]:
+                if request is None or key[1] < request.cycle:
+                    del self._answers[key]  # to a request no longer outstanding
+            if request is None:
+                continue
+            answer = self._answers.get((design, request.cycle))
+            if answer is None or self._cycle < self.request_cycle(request) + self.plan_delay_cycles:
+                continue
+            del self._answers[design, request.cycle]
+            if isinstance(answer, DesignAnswer):
+                controller.adopt_design(answer)
+                plan = None
+            else:
+                controller.adopt(answer)
+                plan = answer.plan
+            self._taken.append(PlanTaken(self._cycle, self.request_cycle(request), plan, design))
+
+    def _offer_recorded(self) -> None:
+        assert self.recorded is not None
+        for design in (True, False):
+            taken = self.recorded.get((self._cycle, design))
+            if taken is None:
+                continue
+            request = self._outstanding(design)
+            if request is None or self.request_cycle(request) != taken.request_cycle or (
+                self._cycle < taken.request_cycle + self.plan_delay_cycles
+            ):
+                if self.plan_mismatch is None:
+                    what = "re-design" if design else "plan"
+                    self.plan_mismatch = (
+                        f"the log records the {what} of a request of cycle "
+                        f"{taken.request_cycle} taken at cycle {self._cycle}; the re-run's "
+                        f"{what} request outstanding then is " + (
+                            "none" if request is None
+                            else f"of cycle {self.request_cycle(request)}"
+                        )
+                    )
+                continue
+            if isinstance(request, DesignRequest):
+                # the design is a function of the request: made again here, as the run did
+                self.offer(solve_design_request(request))
+            else:
+                self.offer(PlanAnswer(request.cycle, taken.plan))

@@ -140,7 +140,7 @@ def verify(run_log: RunLog) -> VerifyResult:
             return VerifyResult(index + 1, mismatch, source, difference)
         held_v = replayed_v
     if isinstance(law, ReplanningLaw):
-        unused = [cycle for cycle in recorded_plans(run_log) if cycle >= law.cycle]
+        unused = [cycle for cycle, _ in recorded_plans(run_log) if cycle >= law.cycle]
         if unused and not run_log.truncated:
             return VerifyResult(count, None, source, difference, (
                 f"the log records a plan at cycle {min(unused)}, after the last cycle re-run"

@@ -1,8 +1,12 @@
-"""The ``/plans`` topic: each plan a re-planning law adopted, and the cycle it took effect.
+"""The ``/plans`` topic: each answer of its planner a re-planning law took, the cycle it took
+it (the plan's first) and the cycle of the request it answers; the plan, or null where the
+planner had none.
 
 A plan is written field by field (``ArcPlan``'s), each float as ``float.hex``: the text gives
-back the very same bits, so a replay can inject the recorded plans instead of solving and
+back the very same bits, so a replay can inject the recorded answers instead of solving and
 re-run the law bit for bit on any machine (and whatever today's planner would solve).
+``wait_ns``, where the daemon measured it: wall time from sending the request to reading the
+answer (information; a replay does not use it).
 """
 
 from __future__ import annotations
@@ -11,6 +15,7 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
+from ballbeam.core.control import PlanTaken
 from ballbeam.core.planning.arcs import ArcPlan
 from ballbeam.errors import LogFormatError
 from ballbeam.logs.reader import RunLog
@@ -23,8 +28,11 @@ PLAN_SCHEMA = {
     "type": "object",
     "properties": {
         "cycle": {"type": "integer"},
+        "request_cycle": {"type": "integer"},
+        "design": {"type": "boolean"},
+        "wait_ns": {"type": "integer"},
         "plan": {
-            "type": "object",
+            "type": ["object", "null"],
             "properties": {
                 **{name: _HEX_LIST for name in _FLOAT_LISTS},
                 "holds": {"type": "array", "items": {"type": "integer"}},
@@ -33,25 +41,48 @@ PLAN_SCHEMA = {
             "required": [*_FLOAT_LISTS, "holds", *_FLOATS],
         },
     },
-    "required": ["cycle", "plan"],
+    "required": ["cycle", "request_cycle", "plan"],
 }
 
 
-def plan_message(cycle: int, plan: ArcPlan) -> dict[str, Any]:
-    """The ``/plans`` message of ``plan``, adopted at ``cycle``."""
+def plan_message(taken: PlanTaken, wait_ns: int | None = None) -> dict[str, Any]:
+    """The ``/plans`` message of an answer taken."""
+    message: dict[str, Any] = {
+        "cycle": int(taken.cycle),
+        "request_cycle": int(taken.request_cycle),
+        "plan": None if taken.plan is None else _plan_fields(taken.plan),
+    }
+    if taken.design:
+        message["design"] = True
+    if wait_ns is not None:
+        message["wait_ns"] = int(wait_ns)
+    return message
+
+
+def _plan_fields(plan: ArcPlan) -> dict[str, Any]:
     fields: dict[str, Any] = {
         name: [float(value).hex() for value in getattr(plan, name)] for name in _FLOAT_LISTS
     }
     fields["holds"] = [int(hold) for hold in plan.holds]
     fields.update({name: float(getattr(plan, name)).hex() for name in _FLOATS})
-    return {"cycle": int(cycle), "plan": fields}
+    return fields
 
 
-def plan_from_message(message: Mapping[str, Any]) -> tuple[int, ArcPlan]:
-    """(cycle, plan) of a ``/plans`` message; ValueError where it is not one."""
-    cycle, fields = message["cycle"], message["plan"]
-    if not isinstance(cycle, int) or isinstance(cycle, bool) or cycle < 0:
-        raise ValueError(f"cycle {cycle!r} is not a cycle")
+def plan_from_message(message: Mapping[str, Any]) -> PlanTaken:
+    """The answer taken of a ``/plans`` message; ValueError where it is not one."""
+    cycle, request_cycle = message["cycle"], message["request_cycle"]
+    for value in (cycle, request_cycle):
+        if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+            raise ValueError(f"cycle {value!r} is not a cycle")
+    if request_cycle >= cycle:
+        raise ValueError(f"an answer taken at cycle {cycle} to a request of {request_cycle}")
+    fields, design = message["plan"], message.get("design", False)
+    if not isinstance(design, bool) or (design and fields is not None):
+        raise ValueError("a re-design carries no plan")
+    return PlanTaken(cycle, request_cycle, None if fields is None else _plan(fields), design)
+
+
+def _plan(fields: Mapping[str, Any]) -> ArcPlan:
     lists = {name: tuple(_float(text) for text in fields[name]) for name in _FLOAT_LISTS}
     holds = tuple(fields["holds"])
     if not all(isinstance(hold, int) and not isinstance(hold, bool) for hold in holds):
@@ -61,7 +92,7 @@ def plan_from_message(message: Mapping[str, Any]) -> tuple[int, ArcPlan]:
     ):
         raise ValueError("a plan needs a 4-state start and one input, duration and hold an arc")
     start = lists["start"]
-    return cycle, ArcPlan(
+    return ArcPlan(
         input_v=lists["input_v"],
         duration_s_each=lists["duration_s_each"],
         holds=holds,
@@ -70,23 +101,25 @@ def plan_from_message(message: Mapping[str, Any]) -> tuple[int, ArcPlan]:
     )
 
 
-def recorded_plans(run_log: RunLog) -> dict[int, ArcPlan]:
-    """The plans a run adopted, by cycle (none: the log has no ``/plans``); LogFormatError for
-    a message that is not a plan, or two at one cycle."""
+def recorded_plans(run_log: RunLog) -> dict[tuple[int, bool], PlanTaken]:
+    """The answers a run took, by the cycle it took each and whether it is a re-design (none:
+    the log has no ``/plans``); LogFormatError for a message that is not one, or two of a
+    kind at one cycle."""
     topic = run_log.json_topics.get(PLANS)
-    plans: dict[int, ArcPlan] = {}
+    plans: dict[tuple[int, bool], PlanTaken] = {}
     if topic is None:
         return plans
     for index, message in enumerate(topic.messages):
         try:
-            cycle, plan = plan_from_message(message)
+            taken = plan_from_message(message)
         except (KeyError, TypeError, ValueError) as error:
             raise LogFormatError(
                 f"{run_log.path}: {PLANS} message #{index} is not a plan ({error})"
             ) from error
-        if cycle in plans:
-            raise LogFormatError(f"{run_log.path}: {PLANS} has two plans at cycle {cycle}")
-        plans[cycle] = plan
+        key = (taken.cycle, taken.design)
+        if key in plans:
+            raise LogFormatError(f"{run_log.path}: {PLANS} has two plans at cycle {taken.cycle}")
+        plans[key] = taken
     return plans
 
 

@@ -23,7 +23,7 @@ from ballbeam.logs.topics import (
 )
 
 if TYPE_CHECKING:
-    from ballbeam.core.planning.arcs import ArcPlan
+    from ballbeam.core.control import PlanTaken
 
 
 class RunRecording:
@@ -62,9 +62,9 @@ class RunRecording:
             "ball_velocity_change_m_s": change_m_s,
         })
 
-    def plan(self, log_time_ns: int, cycle: int, plan: ArcPlan) -> None:
-        """A plan the law adopted, taking effect at ``cycle``."""
-        self.recorder.record(self._handles[PLANS], log_time_ns, plan_message(cycle, plan))
+    def plan(self, log_time_ns: int, taken: PlanTaken, wait_ns: int | None = None) -> None:
+        """An answer of its planner the law took (``wait_ns``: request to answer, measured)."""
+        self.recorder.record(self._handles[PLANS], log_time_ns, plan_message(taken, wait_ns))
 
     def _note(self, topic: str, log_time_ns: int, cycle: int, kind: str, detail: str) -> None:
         self.recorder.record(

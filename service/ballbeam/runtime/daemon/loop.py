@@ -21,6 +21,8 @@ from ballbeam.config import Config
 from ballbeam.core.control import CycleOutput
 from ballbeam.core.law import ControlLaw
 from ballbeam.core.plant import SensorReading
+from ballbeam.core.replanning import PlanAnswer, solve_design_request
+from ballbeam.core.replanning_law import ReplanningLaw
 from ballbeam.errors import BallbeamError
 from ballbeam.logs.recording import RunRecording
 from ballbeam.logs.topics import (
@@ -40,6 +42,7 @@ from ballbeam.runtime.daemon.command_out import CommandOut
 from ballbeam.runtime.daemon.intake import SensorIntake, SentCommands
 from ballbeam.runtime.owner_lock import OwnerLock
 from ballbeam.runtime.peer_link import signal_run_over
+from ballbeam.runtime.planner import PlannerProcess
 from ballbeam.runtime.stop import StopFlag
 from ballbeam.runtime.ticker import Ticker, spin_ns_for_this_process
 
@@ -61,6 +64,8 @@ FINAL_STATUS_WAIT_S = 0.5
 LATE_SAMPLE_CYCLES = 2
 # Measured cycles in a row whose samples must agree on which plant period a cycle is.
 PERIOD_OFFSET_AGREEMENT = 8
+# Lock-step, waiting for a plan that is due: how often the stop flag is looked at [s].
+PLAN_WAIT_POLL_S = 0.1
 # A cycle reads its socket for half a period at most, so that a flood cannot hold the loop; a
 # daemon behind the stream reads on up to this share of the period [%] to catch up.
 CATCH_UP_SHARE = 80
@@ -86,6 +91,9 @@ class DaemonStats:
     second_writer_frames: int = 0
     plant_status_snapshots: int = 0  # whole snapshots of the emulator's counters recorded
     plant_status_incomplete: int = 0  # snapshots with a frame lost or out of order
+    plan_requests: int = 0  # re-planning law: requests sent to its planner
+    plan_answers_taken: int = 0  # ... answers the law took (on /plans)
+    plan_errors: int = 0  # ... answers with a failure of the planner's, or none (planner lost)
     rejected: Counter[str] = field(default_factory=Counter)
     end_reason: str = "completed"
 
@@ -113,15 +121,22 @@ class ControllerDaemon:
         auth: FrameAuthenticator | None = None,
         run_over_fd: int | None = None,
         emulator_lock: OwnerLock | None = None,
+        planner: PlannerProcess | None = None,
     ) -> None:
         """``run_over_fd``: the daemon's end of ``ballbeam run``'s peer link, to tell the
         emulator when the run is over and record its final counters; ``emulator_lock``: the
         robust mutex the emulator holds (runtime/owner_lock.py), to tell a late plant from a
-        dead one. ``law``: the control law, in its starting state."""
+        dead one. ``law``: the control law, in its starting state; ``planner``: a re-planning
+        law's planner process (its requests go there, its answers come back each cycle)."""
         self.config = config
         self.run_over_fd = run_over_fd
         self.emulator_lock = emulator_lock
         self.law = law
+        self.replanning = law if isinstance(law, ReplanningLaw) else None
+        self.planner = planner
+        self._plan_waits: dict[int, int] = {}  # request cycle (the law's) → ns to its answer
+        self._planner_failing = False
+        self._planner_gone = False
         self.angle_per_count, self.position_per_count = counts_per_measurement(config)
         self.bus = bus
         self.recording = recording
@@ -244,14 +259,17 @@ class ControllerDaemon:
             if self.names_periods:
                 self._learn_period_offset(sample.counter, cycle)
         timeout = self._sensor_timeout_periods()
+        self._take_plans()
         if self.law.started and self.cycles_since_sensor >= timeout:
             self._fault_cycle()
+            self._send_plan_request()
             return
         if self.in_fault:
             self.in_fault = False
             self._event("sensor_frames_resumed", f"after {timeout}+ silent periods")
         self._record_sensor(cycle, reading)
         output = self.law.step(reading, lateness_ns)
+        self._send_plan_request()
         self.last_output = output
         # What the plant is to drive if the next commands do not come in time (real time).
         self.lookahead_v = self.law.lookahead()
@@ -267,12 +285,79 @@ class ControllerDaemon:
         self.recording.write(
             REFERENCE, at_ns, ReferenceRecord(cycle, *output.reference, output.reference_input_v)
         )
-        for plan_cycle, plan in output.adopted_plans:
-            self.recording.plan(at_ns, plan_cycle, plan)
+        for taken in output.adopted_plans:
+            self._stats.plan_answers_taken += 1
+            wait_ns = None if taken.design else self._plan_waits.pop(taken.request_cycle, None)
+            self.recording.plan(at_ns, taken, wait_ns)
         self._watch_theta(output.estimate[0])
         while self.taps_to_log and self.taps_to_log[0][0] <= cycle:
             tap_cycle, step, time_s, change_m_s = self.taps_to_log.pop(0)
             self.recording.tap(at_ns, tap_cycle, time_s, step, change_m_s)
+
+    # -- the re-planning law's planner ---------------------------------------------------------
+    def _take_plans(self) -> None:
+        """Hand the law its planner's answers; lock-step waits for the one due at this cycle
+        (so the run equals the offline one), real time never waits (an answer is taken at
+        the cycle it came in)."""
+        law, planner = self.replanning, self.planner
+        if law is None or planner is None:
+            return
+        lockstep = self.config.run.mode == "lockstep"
+        while True:
+            due = law.answer_due_cycle
+            must_wait = lockstep and due is not None and due <= law.cycle
+            for answer, wait_ns in planner.receive(PLAN_WAIT_POLL_S if must_wait else 0.0):
+                if isinstance(answer, PlanAnswer):
+                    self._plan_waits[law.law_cycle(answer.request_cycle)] = wait_ns
+                    self._planner_error(answer.error)
+                law.offer(answer)
+            if not planner.alive:
+                self._planner_lost()
+                return
+            if not must_wait or law.answer_due_cycle is None or self.stop.is_set():
+                return
+
+    def _send_plan_request(self) -> None:
+        law = self.replanning
+        if law is None:
+            return
+        for request in law.take_requests():
+            self._stats.plan_requests += 1
+            if self.planner is None or not self.planner.send(request):
+                self._planner_lost()
+
+    def _planner_error(self, error: str | None) -> None:
+        """A failed solve is an answer of no plan (the law keeps its plan): a fault, once
+        for a run of them."""
+        if error is not None:
+            self._stats.plan_errors += 1
+            if not self._planner_failing:
+                self._fault("planner_error", f"no plan from the planner ({error}); "
+                            "the law keeps its plan")
+                log.error("the planner failed: %s", error)
+        self._planner_failing = error is not None
+
+    def _planner_lost(self) -> None:
+        """The planner process is gone: from now on every request is answered with no plan
+        at once (the law keeps its plan and its terminal regulator; recorded as answers)."""
+        law = self.replanning
+        assert law is not None
+        if not self._planner_gone:
+            self._planner_gone = True
+            pid = self.planner.pid if self.planner is not None else None
+            self._fault("planner_lost", f"no planner process (pid {pid}); the law goes on "
+                        "without new plans")
+            log.error("the planner process ended: no new plans for the rest of the run")
+            if self.planner is not None:
+                self.planner.close()
+                self.planner = None
+        request = law.controller.outstanding
+        if request is not None:
+            self._stats.plan_errors += 1
+            law.offer(PlanAnswer(request.cycle, None, error="planner lost"))
+        design = law.controller.design_outstanding
+        if design is not None:  # made here: a design's solve is tens of ms, not seconds
+            law.offer(solve_design_request(design))
 
     def _learn_period_offset(self, sample_counter: int, cycle: int) -> None:
         """Plant periods and cycles both follow the clock, so the plant period of cycle k is
@@ -530,7 +615,9 @@ class ControllerDaemon:
         if self.in_fault:
             held_v = 0.0
         # The plant drove the look-ahead sent with the last command, then held its last entry.
+        self._take_plans()
         self.law.coast(held_v, count, self.lookahead_v)
+        self._send_plan_request()
         self._event("overrun", f"skipped {count} period(s), coasting on the model")
 
     def _shutdown(self) -> None:

@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, BinaryIO
 
 from ballbeam.assembly import control_law, controller_design
 from ballbeam.config import Config
+from ballbeam.core.control import ControllerDesign
 from ballbeam.errors import BusError
 from ballbeam.logs import design_record
 from ballbeam.logs.recorder import Recorder
@@ -23,6 +24,7 @@ from ballbeam.runtime.bus import BUS_CHOICE_ENV, open_bus, resolve_auto, resolve
 from ballbeam.runtime.daemon.loop import ControllerDaemon
 from ballbeam.runtime.owner_lock import EMULATOR_SLOT, OwnerLock
 from ballbeam.runtime.peer_link import run_over_fd
+from ballbeam.runtime.planner import PlannerProcess
 from ballbeam.runtime.process import (
     REALTIME_SWITCH_INTERVAL_S,
     apply_scheduling,
@@ -38,6 +40,10 @@ if TYPE_CHECKING:
     from ballbeam.runtime.live import LiveView
 
 log = logging.getLogger("ballbeam")
+
+# How long the daemon gives its planner process to start and warm up (imports, a first
+# solve: seconds on a loaded machine) before the run; after it the run starts regardless.
+PLANNER_READY_S = 20.0
 
 NO_SECRET = (
     "bus.authenticate is on ({bus}) but the daemon has no run secret: `ballbeam run` hands "
@@ -122,6 +128,33 @@ def _run_recorded(
     tracker = config.controller.kind == "tracker"
     # Before touching the bus: a bad config fails fast.
     design = controller_design(config) if tracker else None
+    # The re-planning law's planner, started before this process takes real-time scheduling
+    # or a CPU (it must not compete with the loop); it ends with the pipe, however we end.
+    planner = None if tracker else PlannerProcess()
+    if planner is not None:
+        ready = planner.wait_ready(PLANNER_READY_S)
+        log.info("planner process %s %s", planner.pid,
+                 "ready" if ready else f"not ready within {PLANNER_READY_S} s")
+    try:
+        return _run_with_planner(
+            config, log_path, config_path, live, secret, log_stream, design, planner
+        )
+    finally:
+        if planner is not None:
+            planner.close()
+
+
+def _run_with_planner(
+    config: Config,
+    log_path: Path,
+    config_path: str | None,
+    live: LiveView | None,
+    secret: RunKey | bytes | None,
+    log_stream: BinaryIO | None,
+    design: ControllerDesign | None,
+    planner: PlannerProcess | None,
+) -> str:
+    tracker = design is not None
     # The bus the run goes on, named in its log: "auto" as the launcher resolved it (it says
     # why), or as this daemon does when started by hand.
     bus_choice = os.environ.get(BUS_CHOICE_ENV, "")
@@ -204,9 +237,10 @@ def _run_recorded(
             log.info("live view on %s (Foxglove: Open connection, Foxglove WebSocket)", live.url)
         bus = open_bus(config.bus)
         try:
-            law = control_law(config, design)
+            law = control_law(config, design, plans_in_process=False)
             daemon = ControllerDaemon(config, law, bus, contract, recording, stop, auth,
-                                      run_over_fd=link_fd, emulator_lock=emulator_lock)
+                                      run_over_fd=link_fd, emulator_lock=emulator_lock,
+                                      planner=planner)
             settle_heap()
             try:
                 stats = daemon.run()
