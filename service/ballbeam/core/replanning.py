@@ -59,8 +59,16 @@ from ballbeam.core.observer import (
     measurement_noise_covariance,
     process_noise_covariance,
 )
-from ballbeam.core.planning.arcs import ArcPlan, _free, _step, _theta_extreme, plan_arcs, replan
-from ballbeam.core.planning.lag_hold import _Params
+from ballbeam.core.planning.arcs import (
+    ArcPlan,
+    _free,
+    _replay,
+    _step,
+    _theta_extreme,
+    plan_arcs,
+    replan,
+)
+from ballbeam.core.planning.lag_hold import _Params, _propagate
 from ballbeam.core.plant import (
     EmulatedPlant,
     PlantPhysics,
@@ -642,6 +650,36 @@ def _solve_warm(r: PlanRequest, params: _Params, from_state: np.ndarray) -> Plan
     return PlanAnswer(r.cycle, None, counts)
 
 
+class _PlanSampler:
+    """``ArcPlan.sample`` at one time, the same arithmetic, with the plan's arc boundaries
+    computed once: ``sample`` recomputes them at each call, which for a plan of a few arcs
+    is a quarter of the law's cycle."""
+
+    def __init__(self, plan: ArcPlan) -> None:
+        self.plan = plan
+        self.edges = plan.switch_times_s
+        self.bounds = np.array(
+            [plan.start]
+            + [
+                _replay(plan.params, plan.start, plan.input_v[: i + 1],
+                        plan.duration_s_each[: i + 1])
+                for i in range(len(plan.input_v))
+            ]
+        )
+
+    def at(self, time_s: float) -> tuple[np.ndarray, float]:
+        """The plan's state (4,) and input at ``time_s``."""
+        t = np.array([time_s])
+        k = int(np.searchsorted(self.edges, t, side="right")[0]) - 1
+        if k < 0:
+            return np.array(self.plan.start, dtype=float), 0.0
+        if k >= len(self.plan.input_v):
+            return np.zeros(4), 0.0
+        u = np.asarray(self.plan.input_v)[[k]]
+        state = _propagate(self.plan.params, self.bounds[[k]], u, t - self.edges[[k]])
+        return state[0], float(u[0])
+
+
 @dataclass
 class CycleRecord:
     """What one cycle did (for plots and metrics)."""
@@ -690,6 +728,7 @@ class ReplanningController:
     # ... and so the re-design from each new identification (Riccati equations: tens of ms)
     design_outstanding: DesignRequest | None = field(init=False, default=None)
     design_issued: DesignRequest | None = field(init=False, default=None)
+    _sampler: _PlanSampler | None = field(init=False, default=None)
 
     def __post_init__(self) -> None:
         s = self.settings
@@ -954,7 +993,7 @@ class ReplanningController:
         plan = self.plan
         if not self.terminal and plan is not None:
             elapsed = self._elapsed()
-            edges = plan.switch_times_s
+            edges = self._plan_sampler(plan).edges
             last_stroke = elapsed >= edges[-2] if len(edges) >= 2 else True
             if (last_stroke and self._in_terminal_set()) or elapsed >= plan.duration_s:
                 if self._in_terminal_set():
@@ -971,10 +1010,9 @@ class ReplanningController:
             reference = np.array([0.0, 0.0, 0.0, self.target_m])
             feedforward = 0.0
         else:
-            sample = plan.sample(np.array([self._elapsed()]))
-            reference = sample.states[0].copy()
+            state, feedforward = self._plan_sampler(plan).at(self._elapsed())
+            reference = state.copy()
             reference[BALL_POSITION] += plan.target_m
-            feedforward = float(sample.input_v[0])
             drive = feedforward + float(d.K @ (reference - self.estimate))
         if self.terminal and self.settings.rest_threshold:
             # at rest every drive smaller than the estimate's noise is a reaction to noise:
@@ -990,10 +1028,11 @@ class ReplanningController:
         if (self.cycle - self.plan_start_cycle) % s.replan_every or self.outstanding is not None:
             return
         elapsed = self._elapsed()
-        edges = plan.switch_times_s
+        sampler = self._plan_sampler(plan)
+        edges = sampler.edges
         if len(edges) >= 2 and elapsed >= edges[-2]:
             return  # the last arc: the terminal regulator's, not a re-plan's
-        on_plan = plan.sample(np.array([elapsed])).states[0]
+        on_plan = sampler.at(elapsed)[0]
         est = self.estimate
         d = self.design
         # the plan's own servo state, the estimated ball (absolute position); a re-plan is
@@ -1014,6 +1053,11 @@ class ReplanningController:
             reshape_max_v=d.reshape_max_v, headroom_v=d.headroom_v,
             cold_state=_row(self._clipped(from_state if moved else None)),
         ))
+
+    def _plan_sampler(self, plan: ArcPlan) -> _PlanSampler:
+        if self._sampler is None or self._sampler.plan is not plan:
+            self._sampler = _PlanSampler(plan)
+        return self._sampler
 
     def _ramp_v(self) -> float:
         """Twice the σ of the terminal drive the estimate's error carries: from the design's
