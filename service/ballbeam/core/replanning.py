@@ -968,6 +968,10 @@ class ReplanningController:
         sigma = math.sqrt(float(gradient @ d.estimate_covariance @ gradient))
         return norm - math.sqrt(d.terminal_level) > s.terminal_exit_sigmas * sigma
 
+    def request_plan(self, state: np.ndarray) -> None:
+        """Ask for a cold plan from ``state`` (the run's start, before its first step)."""
+        self._request(self._plan_request("cold", self._clipped(np.array(state, dtype=float))))
+
     def _plan_from_estimate(self, near: bool = False, state: np.ndarray | None = None) -> None:
         """A fresh plan from the estimate (or ``state``); ``near``: close to the target, where
         the four-arc guess solves it directly (no grid plan). A plan not found keeps the

@@ -7,7 +7,8 @@ whoever runs it hands to a planner: ``solve_plan_request`` in this process (``ba
 simulate``), or the daemon's planner process (``runtime/planner.py``). The answer comes back
 through :meth:`ReplanningLaw.offer` and is taken at the first step at least
 ``plan_delay_cycles`` after the request, or later if it came later (real time: the cycle it
-arrived). One request is outstanding at most; a plan wanted meanwhile is asked for afresh from
+arrived); the first plan, from the run's start, is asked for before the run and is due at its
+first cycle. One request is outstanding at most; a plan wanted meanwhile is asked for afresh from
 the state after the answer. So offline and lock-step (where the daemon waits for each answer
 before the cycle it is due) take the same answers at the same cycles, whatever the solver's
 speed.
@@ -83,12 +84,22 @@ class ReplanningLaw:
             settings, np.array(initial_state, dtype=float), target_m=task.target_at(0.0)
         )
         self.controller.deferred = True
+        # The first plan is asked for now, from the run's start (the plant holds the ball
+        # until the first command): it is due at the first cycle, so a runner solves it
+        # before the run begins instead of the run starting with no plan.
+        self.controller.request_plan(self.controller.initial_state)
+        self._initial = self.controller.outstanding
         self._cycle = 0
         self._first_cycle = 0  # the law's cycle of the controller's first step
         # offered, by (a design's?, the request's cycle)
         self._answers: dict[tuple[bool, int], Answer] = {}
         self._issued: list[Request] = []  # for the caller to take
         self._taken: list[PlanTaken] = []  # since the last output
+        if recorded is None and self._initial is not None:
+            if planner is not None:
+                self.offer(planner(self._initial))
+            else:
+                self._issued.append(self._initial)
         # Set when a replayed cycle took a recorded answer to a request the re-run did not
         # make (or has none outstanding): the first such difference, in words.
         self.plan_mismatch: str | None = None
@@ -119,6 +130,12 @@ class ReplanningLaw:
         requests, self._issued = self._issued, []
         return requests
 
+    def _due(self, request: Request) -> int:
+        """The cycle from which the answer to ``request`` may be taken."""
+        if request is self._initial:
+            return 0
+        return self.request_cycle(request) + self.plan_delay_cycles
+
     def _outstanding(self, design: bool) -> Request | None:
         return self.controller.design_outstanding if design else self.controller.outstanding
 
@@ -127,7 +144,7 @@ class ReplanningLaw:
         """The first cycle whose step takes the answer to an outstanding request that is not
         in yet (lock-step waits for it before that step); None when nothing is awaited."""
         due = [
-            self.request_cycle(request) + self.plan_delay_cycles
+            self._due(request)
             for design in (True, False)
             if (request := self._outstanding(design)) is not None
             and (design, request.cycle) not in self._answers
@@ -205,7 +222,7 @@ class ReplanningLaw:
             if request is None:
                 continue
             answer = self._answers.get((design, request.cycle))
-            if answer is None or self._cycle < self.request_cycle(request) + self.plan_delay_cycles:
+            if answer is None or self._cycle < self._due(request):
                 continue
             del self._answers[design, request.cycle]
             if isinstance(answer, DesignAnswer):
@@ -224,7 +241,7 @@ class ReplanningLaw:
                 continue
             request = self._outstanding(design)
             if request is None or self.request_cycle(request) != taken.request_cycle or (
-                self._cycle < taken.request_cycle + self.plan_delay_cycles
+                self._cycle < self._due(request)
             ):
                 if self.plan_mismatch is None:
                     what = "re-design" if design else "plan"

@@ -74,7 +74,7 @@ def plan_from_message(message: Mapping[str, Any]) -> PlanTaken:
     for value in (cycle, request_cycle):
         if not isinstance(value, int) or isinstance(value, bool) or value < 0:
             raise ValueError(f"cycle {value!r} is not a cycle")
-    if request_cycle >= cycle:
+    if request_cycle > cycle:
         raise ValueError(f"an answer taken at cycle {cycle} to a request of {request_cycle}")
     fields, design = message["plan"], message.get("design", False)
     if not isinstance(design, bool) or (design and fields is not None):

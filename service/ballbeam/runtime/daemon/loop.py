@@ -305,7 +305,8 @@ class ControllerDaemon:
         lockstep = self.config.run.mode == "lockstep"
         while True:
             due = law.answer_due_cycle
-            must_wait = lockstep and due is not None and due <= law.cycle
+            # (the first plan is waited for in real time too: the run has not begun)
+            must_wait = (lockstep or not law.started) and due is not None and due <= law.cycle
             for answer, wait_ns in planner.receive(PLAN_WAIT_POLL_S if must_wait else 0.0):
                 if isinstance(answer, PlanAnswer):
                     self._plan_waits[law.law_cycle(answer.request_cycle)] = wait_ns
@@ -493,6 +494,8 @@ class ControllerDaemon:
     def run(self) -> DaemonStats:
         self._event("daemon_start", f"mode={self.config.run.mode}")
         try:
+            self._send_plan_request()  # the first plan, due at the first cycle: before the run
+            self._take_plans()
             arrival_ns = self._wait_for_plant()
             if not self.stop.is_set():
                 if self.config.run.mode == "lockstep":
