@@ -186,13 +186,18 @@ def _with_plans(run_log: RunLog, messages: list[dict[str, Any]]) -> RunLog:
 def test_verify_fails_on_a_recorded_plan_with_one_float_changed(replanning_log: Path) -> None:
     run_log = read_log(replanning_log)
     messages = [json.loads(json.dumps(message)) for message in run_log.json_topics[PLANS].messages]
-    # The first arc's input of the first plan, one part in 10⁹: the re-run tracks the plan
+    # Every arc's input of a plan taken mid-run, one part in 10⁹: the re-run tracks the plan
     # as injected (had it solved its own, the change would go unseen).
-    inputs = messages[0]["plan"]["input_v"]
-    inputs[0] = (float.fromhex(inputs[0]) * (1.0 + 1e-9)).hex()
+    index = next(
+        i for i, m in enumerate(messages) if m["plan"] is not None and m["cycle"] >= 100
+    )
+    inputs = messages[index]["plan"]["input_v"]
+    inputs[:] = [(float.fromhex(value) * (1.0 + 1e-9)).hex() for value in inputs]
     result = verify(_with_plans(run_log, messages))
     assert not result.ok and result.mismatch is not None
-    assert result.mismatch.cycle < messages[1]["cycle"]  # before the next plan takes over
+    following = [m["cycle"] for m in messages[index + 1 :] if m["plan"] is not None]
+    # from the cycle it took effect, before the next plan takes over
+    assert messages[index]["cycle"] <= result.mismatch.cycle < following[0]
 
 
 @pytest.mark.bus
