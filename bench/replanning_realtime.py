@@ -7,6 +7,7 @@ the cycle's own duration (/timing), whether and when the ball came to rest, the 
 time from sending each request to reading its answer, p50 and p99.
 
     nice -n 19 .venv/bin/python bench/replanning_realtime.py [--duration 4] [--set KEY=VALUE]
+        [--log-dir DIR]
 """
 
 from __future__ import annotations
@@ -64,6 +65,7 @@ def run(kind: str, duration_s: float, log_dir: Path, extra: list[str]) -> dict[s
         "rest_s": rest_s,
         "max_abs_theta_deg": round(float(np.degrees(np.max(np.abs(truth["theta_rad"])))), 3),
     }
+    figures["cycle_p50_us_where_an_answer_was_taken"] = None
     plans = run_log.json_topics.get(PLANS)
     if plans is not None:
         waits_ms = np.array(
@@ -74,6 +76,11 @@ def run(kind: str, duration_s: float, log_dir: Path, extra: list[str]) -> dict[s
         if waits_ms.size:
             figures["answer_wait_p50_ms"] = round(float(np.percentile(waits_ms, 50)), 2)
             figures["answer_wait_p99_ms"] = round(float(np.percentile(waits_ms, 99)), 2)
+        taken = np.isin(np.asarray(timing["cycle"]), [m["cycle"] for m in plans.messages])
+        if taken.any():
+            figures["cycle_p50_us_where_an_answer_was_taken"] = round(
+                float(np.percentile(duration_us[taken], 50)), 1
+            )
         figures["fewest_cycles_request_to_effect"] = min(
             (m["cycle"] - m["request_cycle"] for m in plans.messages if m["cycle"] > 0),
             default=None,
@@ -86,12 +93,16 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--duration", type=float, default=4.0)
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    parser.add_argument("--log-dir", type=Path, help="keep the logs here (default: discarded)")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as scratch:
+        base = args.log_dir or Path(scratch)
         rows = [
-            run(kind, args.duration, Path(scratch) / kind, args.set)
-            for kind in ("tracker", "replanning")
+            run(kind, args.duration, base / kind, args.set) for kind in ("tracker", "replanning")
         ]
+        for row in rows:
+            if args.log_dir is None:
+                row.pop("log", None)
         print(json.dumps(rows, indent=2))
     return 0
 
