@@ -52,6 +52,9 @@ State = tuple[float, float, float, float]
 # Newton's stopping test, on residuals scaled to the problem's own units (θm, U/β, ...).
 _TOLERANCE = 1e-11
 _MAX_ITERATIONS = 15
+# A cold guess comes from a grid, further from the root than a warm one (a long hold's
+# entry blurred over several steps): Newton gets more steps there.
+_COLD_ITERATIONS = 60
 # An arc this short (s) after convergence is dropped and the rest solved again.
 _NEGLIGIBLE_S = 1e-9
 # Angle overshoot accepted from rounding (relative to θm).
@@ -186,7 +189,11 @@ class _Root:
 
 
 def _newton(
-    problem: _Problem, inputs: Sequence[float], holds: Sequence[int], taus: Sequence[float]
+    problem: _Problem,
+    inputs: Sequence[float],
+    holds: Sequence[int],
+    taus: Sequence[float],
+    max_iterations: int = _MAX_ITERATIONS,
 ) -> _Root:
     """Durations ≥ 0 that zero the residuals: Levenberg-Marquardt (Gauss-Newton steps, damped
     where the guess is far: arcs put in by a re-plan start far from their size, and undamped
@@ -197,7 +204,7 @@ def _newton(
     r = np.array(r_list)
     cost = float(r @ r)
     damping = 1e-6
-    for _ in range(_MAX_ITERATIONS):
+    for _ in range(max_iterations):
         if max(abs(v) for v in r_list) < _TOLERANCE:
             return _Root(x.tolist(), states, True)
         H = J.T @ J
@@ -244,15 +251,20 @@ def _merge(signs: list[int], holds: list[int], taus: list[float]) -> None:
 
 
 def solve_arcs(
-    problem: _Problem, signs: Sequence[int], holds: Sequence[int], taus: Sequence[float]
+    problem: _Problem,
+    signs: Sequence[int],
+    holds: Sequence[int],
+    taus: Sequence[float],
+    max_iterations: int = _MAX_ITERATIONS,
 ) -> tuple[list[int], list[int], list[float]] | None:
     """The root of a structure from a guess, arcs that vanish dropped: (signs, holds,
-    durations), or None when no valid root is found from this guess."""
+    durations), or None when no valid root is found from this guess within
+    ``max_iterations`` Newton steps (each time arcs are dropped)."""
     s, h, t = list(signs), list(holds), list(taus)
     for _ in range(len(s) + 1):
         _merge(s, h, t)
         inputs = _inputs(problem, s, h)
-        root = _newton(problem, inputs, h, t)
+        root = _newton(problem, inputs, h, t, max_iterations)
         if not root.converged:
             return None
         t = root.taus
@@ -489,27 +501,30 @@ def plan_arcs(
             grid.input_v, grid.grid_states, grid.step_s, voltage_limit_v, theta_max_rad
         )
         longest_s = grid.duration_s + 1e-9
-        solved = solve_arcs(problem, *guess)
+        solved = solve_arcs(problem, *guess, _COLD_ITERATIONS)
         if solved is not None and math.fsum(solved[2]) <= longest_s:
             return _make(problem, target_m, solved)
-        coasts = arcs_from_grid(
-            grid.input_v,
-            grid.grid_states,
-            grid.step_s,
-            voltage_limit_v,
-            theta_max_rad,
-            coast_hold_fraction=_COAST_HOLD_FRACTION,
-        )
-        guesses = _alternatives(problem, *guess, step_s)
-        if coasts != guess:
-            guesses += [coasts, *_alternatives(problem, *coasts, step_s)]
-        found = [
-            r
-            for g in guesses
-            if (r := solve_arcs(problem, *g)) is not None and math.fsum(r[2]) <= longest_s
-        ]
-        if found:
-            return _make(problem, target_m, min(found, key=lambda r: math.fsum(r[2])))
+    # the finest grid's shape has no root: the structures next to it, from its switch times
+    coasts = arcs_from_grid(
+        grid.input_v,
+        grid.grid_states,
+        grid.step_s,
+        voltage_limit_v,
+        theta_max_rad,
+        coast_hold_fraction=_COAST_HOLD_FRACTION,
+    )
+    guesses = _alternatives(problem, *guess, grid.step_s)
+    if coasts != guess:
+        guesses += [coasts, *_alternatives(problem, *coasts, grid.step_s)]
+    unique = {(tuple(g[0]), tuple(g[1]), tuple(g[2])): g for g in guesses}
+    found = [
+        r
+        for g in unique.values()
+        if (r := solve_arcs(problem, *g, _COLD_ITERATIONS)) is not None
+        and math.fsum(r[2]) <= longest_s
+    ]
+    if found:
+        return _make(problem, target_m, min(found, key=lambda r: math.fsum(r[2])))
     raise PlanningError(
         f"no exact minimum-time arcs near the grid plans from {problem.start} (θ, θ̇, ẋ, x − target)"
     )
@@ -542,7 +557,7 @@ def _alternatives(
 
 
 # A servo that turns back within this fraction of θm may belong on the limit for a while.
-_NEAR_LIMIT = 0.9
+_NEAR_LIMIT = 0.8
 
 
 def _turns_near_limit(
