@@ -17,13 +17,14 @@ Where the roots come from:
   Newton follows it in a few steps. Arcs that shrink to nothing are dropped and the rest solved
   again.
 * **cold** (``plan_arcs``): the grid planner (``time_optimal``, HiGHS on a coarse grid) gives the
-  structure and a guess, which Newton makes exact. A coarse grid may blur the structure (a
-  short hold rounded into a bang, a short arc into a neighbour's partial step), so where its
-  own shape has no root the neighbouring structures are tried from its switch times, and the
-  shortest valid root no longer than the grid plan wins. Only when none is found is the grid
-  planner asked again on a finer grid (never finer than ``_FINEST_COLD_STEP_S``: the fine LPs
-  of a long path take seconds each), and every LP counts against one bound, so a cold plan
-  ends, found or refused, in bounded time.
+  structure and a guess, which Newton makes exact; where the coarse shape has no root, the
+  same on a finer grid, but never finer than ``_FINEST_COLD_STEP_S`` (the LPs of a long path
+  on a fine grid are slow, and the step search may fall back to the whole
+  problem). A grid may blur the structure (a short hold rounded into a bang, a coast for a
+  hold, a short arc for a neighbour's partial step), so where the finest grid's own shape
+  has no root either, the structures next to it are tried from its switch times, and the
+  shortest valid root no longer than that grid's plan wins. The LPs are bounded per grid,
+  so a cold plan ends, found or refused (PlanningError), in bounded time.
 
 Every root is checked before it is believed: durations ≥ 0, and |θ| ≤ θm on every arc in closed
 form (θ̇ is monotone over a held input, so θ has at most one extremum an arc).
@@ -70,6 +71,8 @@ _COLD_LP_SOLVES_PER_GRID = 24
 _SHORT_ARC_STEPS = 2.0
 # A grid's coast this close to the limit (fraction of its largest angle) may stand for a hold.
 _COAST_HOLD_FRACTION = 0.97
+# A servo that turns back within this fraction of θm may belong on the limit for a while.
+_NEAR_LIMIT = 0.8
 
 
 @dataclass(frozen=True)
@@ -554,10 +557,6 @@ def _alternatives(
         out += [guess, *_repairs(*guess)]
     out += _repairs(signs, holds, taus)
     return [g for g in out if g[0]]
-
-
-# A servo that turns back within this fraction of θm may belong on the limit for a while.
-_NEAR_LIMIT = 0.8
 
 
 def _turns_near_limit(
