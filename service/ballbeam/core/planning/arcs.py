@@ -507,30 +507,59 @@ def plan_arcs(
         solved = solve_arcs(problem, *guess, _COLD_ITERATIONS)
         if solved is not None and math.fsum(solved[2]) <= longest_s:
             return _make(problem, target_m, solved)
+        coasts = arcs_from_grid(
+            grid.input_v,
+            grid.grid_states,
+            grid.step_s,
+            voltage_limit_v,
+            theta_max_rad,
+            coast_hold_fraction=_COAST_HOLD_FRACTION,
+        )
+        # the same shape, its holds entered as the continuous path enters them
+        shapes = _unique([_braked(problem, guess), _braked(problem, coasts)])
+        found = _valid_roots(problem, shapes, longest_s)
+        if found:
+            return _make(problem, target_m, min(found, key=lambda r: math.fsum(r[2])))
     # the finest grid's shape has no root: the structures next to it, from its switch times
-    coasts = arcs_from_grid(
-        grid.input_v,
-        grid.grid_states,
-        grid.step_s,
-        voltage_limit_v,
-        theta_max_rad,
-        coast_hold_fraction=_COAST_HOLD_FRACTION,
-    )
-    guesses = _alternatives(problem, *guess, grid.step_s)
-    if coasts != guess:
-        guesses += [coasts, *_alternatives(problem, *coasts, grid.step_s)]
-    unique = {(tuple(g[0]), tuple(g[1]), tuple(g[2])): g for g in guesses}
-    found = [
-        r
-        for g in unique.values()
-        if (r := solve_arcs(problem, *g, _COLD_ITERATIONS)) is not None
-        and math.fsum(r[2]) <= longest_s
+    guesses = [
+        _braked(problem, g) for shape in shapes for g in _alternatives(problem, *shape, grid.step_s)
     ]
+    found = _valid_roots(problem, _unique(guesses), longest_s)
     if found:
         return _make(problem, target_m, min(found, key=lambda r: math.fsum(r[2])))
     raise PlanningError(
         f"no exact minimum-time arcs near the grid plans from {problem.start} (θ, θ̇, ẋ, x − target)"
     )
+
+
+Guess = tuple[list[int], list[int], list[float]]
+
+
+def _unique(guesses: list[Guess]) -> list[Guess]:
+    return list({(tuple(g[0]), tuple(g[1]), tuple(g[2])): g for g in guesses}.values())
+
+
+def _valid_roots(problem: _Problem, guesses: list[Guess], longest_s: float) -> list[Guess]:
+    """The valid roots from the guesses that are no longer than ``longest_s``."""
+    return [
+        r
+        for g in guesses
+        if (r := solve_arcs(problem, *g, _COLD_ITERATIONS)) is not None
+        and math.fsum(r[2]) <= longest_s
+    ]
+
+
+def _braked(problem: _Problem, guess: Guess) -> Guess:
+    """The guess with each arc that brakes onto a hold at least as long as braking from the
+    full-voltage slope to rest takes (ln 2 / a): a grid coasts onto the limit over several
+    steps, and counts only the steps it drives."""
+    signs, holds, taus = guess
+    brake_s = math.log(2.0) / problem.p.pole_per_s
+    out = list(taus)
+    for i in range(1, len(signs)):
+        if holds[i] and not holds[i - 1] and signs[i - 1] == -holds[i]:
+            out[i - 1] = max(out[i - 1], brake_s)
+    return list(signs), list(holds), out
 
 
 def _alternatives(
