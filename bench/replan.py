@@ -19,7 +19,8 @@ the grid planner, on the paper's task.
 ``--cold-draws N --seed S``: cold ``plan_arcs`` from N seeded random starts on random plants
 (issue 27's ranges: ball gain 0.7–1.3, motor gain 0.8–1.2; θ within ±45°, |θ̇| ≤ 0.5 rad/s,
 |ẋ| ≤ 0.15 m/s, |x| ≤ 0.2 m, every other start short: |x| ≤ 5 cm, |ẋ| ≤ 7.5 cm/s), planned as
-the controller plans (4.5 V drive, 52° less its 0.3° margin): time per plan p50/p99/max, the
+the controller plans (52° less its 0.3° margin, a drive of ``--voltage-v``, 4.5 V by default;
+its first plans, with the model still uncertain, may have far less): time per plan p50/p99/max, the
 LP solves it took, and how many were found. ``--before`` adds the cold path as it was (grid
 LPs at 10, 2 and 0.5 ms until the grid's own shape has a root, no bound on the LPs), on the
 same draws, side by side; a stall there is stopped after ``--before-cap`` LP solves on one
@@ -33,6 +34,8 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
+import sys
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -225,6 +228,17 @@ def cold_report(results: dict[str, list[dict[str, Any]]]) -> None:
             )
 
 
+def positive(text: str) -> float:
+    """A positive finite number (argparse reports a bad one in one line and exits 2)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not 0.0 < value < math.inf:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+    return value
+
+
 def draw_slice(text: str) -> tuple[int, int]:
     """``a:b`` with 0 ≤ a < b (argparse reports a bad one in one line and exits 2)."""
     try:
@@ -241,17 +255,19 @@ def cold_main(args: argparse.Namespace) -> None:
     first, stop = args.slice or (0, len(draws))
     draws = draws[first:stop]
     planners: dict[str, Planner] = {}
+    voltage_v = args.voltage_v
     if args.before:
         planners["before"] = lambda model, start: plan_arcs_before(
-            model, start, COLD_VOLTAGE_V, COLD_THETA_MAX, args.before_cap
+            model, start, voltage_v, COLD_THETA_MAX, args.before_cap
         )
     planners["after"] = lambda model, start: (
-        plan_arcs(
-            model, start, voltage_limit_v=COLD_VOLTAGE_V, theta_max_rad=COLD_THETA_MAX
-        ).duration_s
+        plan_arcs(model, start, voltage_limit_v=voltage_v, theta_max_rad=COLD_THETA_MAX).duration_s
     )
     results = cold_records(planners, draws, first, args.before_cap)
-    print(f"cold plans, draw seed {args.seed}, draws {first}..{first + len(draws) - 1}")
+    print(
+        f"cold plans, draw seed {args.seed}, draws {first}..{first + len(draws) - 1}, "
+        f"drive {voltage_v} V"
+    )
     cold_report(results)
     if args.json:
         with open(args.json, "x", encoding="utf-8") as out:
@@ -276,13 +292,24 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=1, help="draw seed for --cold-draws")
     parser.add_argument("--slice", type=draw_slice, help="a:b, the draws of the sequence to run")
     parser.add_argument("--before", action="store_true", help="also the cold path as it was")
+    parser.add_argument(
+        "--voltage-v", type=positive, default=COLD_VOLTAGE_V, help="the plans' drive limit"
+    )
     parser.add_argument("--before-cap", type=int, default=30, help="LPs a grid, before")
     parser.add_argument("--summarise", nargs="+", help="--json files of cold runs")
     args = parser.parse_args()
+    if args.json and os.path.exists(args.json):
+        parser.error(f"--json {args.json} exists (it would not be overwritten)")
     if args.summarise:
-        summarise(args.summarise)
+        try:
+            summarise(args.summarise)
+        except (OSError, ValueError, KeyError, TypeError) as error:
+            print(f"replan: --summarise: not the --json of a cold run: {error}", file=sys.stderr)
+            sys.exit(2)
         return
     if args.cold_draws:
+        if args.cold_draws < 1:
+            parser.error("--cold-draws must be at least 1")
         cold_main(args)
         return
     model = LinearModel.from_constants(PhysicalConstants())
