@@ -504,9 +504,9 @@ def plan_arcs(
             grid.input_v, grid.grid_states, grid.step_s, voltage_limit_v, theta_max_rad
         )
         longest_s = grid.duration_s + 1e-9
-        solved = solve_arcs(problem, *guess, _COLD_ITERATIONS)
-        if solved is not None and math.fsum(solved[2]) <= longest_s:
-            return _make(problem, target_m, solved)
+        found = _valid_roots(problem, [guess], longest_s)
+        if found:
+            return _make(problem, target_m, found[0])
         coasts = arcs_from_grid(
             grid.input_v,
             grid.grid_states,
@@ -540,12 +540,15 @@ def _unique(guesses: list[Guess]) -> list[Guess]:
 
 
 def _valid_roots(problem: _Problem, guesses: list[Guess], longest_s: float) -> list[Guess]:
-    """The valid roots from the guesses that are no longer than ``longest_s``."""
+    """The valid roots from the guesses that are no longer than ``longest_s`` and have no
+    more arcs than conditions (4 for rest, 2 a hold): with more, the roots form a family and
+    Newton stops on any member of it, not on the shortest."""
     return [
         r
         for g in guesses
         if (r := solve_arcs(problem, *g, _COLD_ITERATIONS)) is not None
         and math.fsum(r[2]) <= longest_s
+        and len(r[0]) <= 4 + 2 * sum(1 for h in r[1] if h)
     ]
 
 
