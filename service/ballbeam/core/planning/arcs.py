@@ -490,16 +490,22 @@ def plan_arcs(
         return _make(problem, target_m, ([], [], []))
     coarse_s = max(grid_step_s, _FINEST_COLD_STEP_S)
     steps_s = (coarse_s, _FINEST_COLD_STEP_S) if coarse_s > _FINEST_COLD_STEP_S else (coarse_s,)
+    shapes: list[Guess] = []
     for step_s in steps_s:
-        grid = plan_time_optimal(
-            model,
-            np.array(problem.start),
-            voltage_limit_v=voltage_limit_v,
-            theta_max_rad=theta_max_rad,
-            step_s=step_s,
-            max_duration_s=max_duration_s,
-            max_lp_solves=_COLD_LP_SOLVES_PER_GRID,
-        )
+        try:
+            grid = plan_time_optimal(
+                model,
+                np.array(problem.start),
+                voltage_limit_v=voltage_limit_v,
+                theta_max_rad=theta_max_rad,
+                step_s=step_s,
+                max_duration_s=max_duration_s,
+                max_lp_solves=_COLD_LP_SOLVES_PER_GRID,
+            )
+        except PlanningError:
+            if not shapes:
+                raise
+            break  # the finer grid's search ran out of LPs: the coarser shape must do
         guess = arcs_from_grid(
             grid.input_v, grid.grid_states, grid.step_s, voltage_limit_v, theta_max_rad
         )
@@ -517,12 +523,15 @@ def plan_arcs(
         )
         # the same shape, its holds entered as the continuous path enters them
         shapes = _unique([_braked(problem, guess), _braked(problem, coasts)])
+        shape_step_s = step_s
         found = _valid_roots(problem, shapes, longest_s)
         if found:
             return _make(problem, target_m, min(found, key=lambda r: math.fsum(r[2])))
     # the finest grid's shape has no root: the structures next to it, from its switch times
     guesses = [
-        _braked(problem, g) for shape in shapes for g in _alternatives(problem, *shape, grid.step_s)
+        _braked(problem, g)
+        for shape in shapes
+        for g in _alternatives(problem, *shape, shape_step_s)
     ]
     found = _valid_roots(problem, _unique(guesses), longest_s)
     if found:
