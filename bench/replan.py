@@ -266,7 +266,7 @@ def cold_main(args: argparse.Namespace) -> None:
     results = cold_records(planners, draws, first, args.before_cap)
     print(
         f"cold plans, draw seed {args.seed}, draws {first}..{first + len(draws) - 1}, "
-        f"drive {voltage_v} V"
+        f"drive {voltage_v} V, load average {os.getloadavg()[0]:.1f} (2 cores)"
     )
     cold_report(results)
     if args.json:
