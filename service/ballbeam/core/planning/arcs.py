@@ -49,6 +49,8 @@ from ballbeam.errors import PlanningError
 __all__ = ["ArcPlan", "arcs_from_grid", "plan_arcs", "replan", "solve_arcs"]
 
 State = tuple[float, float, float, float]
+# A structure and its durations: (signs, holds, durations), as ``solve_arcs`` takes them.
+Guess = tuple[list[int], list[int], list[float]]
 
 # Newton's stopping test, on residuals scaled to the problem's own units (θm, U/β, ...).
 _TOLERANCE = 1e-11
@@ -478,8 +480,9 @@ def plan_arcs(
     max_duration_s: float = 20.0,
 ) -> ArcPlan:
     """The minimum-time path from ``state`` (θ, θ̇, ẋ, x) to rest at ``target_m`` (cold start):
-    the grid planner's shape on a ``grid_step_s`` grid (then on ``_FINEST_COLD_STEP_S``'s),
-    made exact by Newton, or the nearest structure that can be. Raises PlanningError where
+    the grid planner's shape on a ``grid_step_s`` grid (then on ``_FINEST_COLD_STEP_S``'s; a
+    finer ``grid_step_s`` is taken as that), made exact by Newton, or the nearest structure
+    that can be. Raises PlanningError where
     the grid planner finds no path within its LP bound or no structure near its shape has a
     valid root no longer than the grid plan."""
     from ballbeam.core.planning.time_optimal import plan_time_optimal
@@ -541,9 +544,6 @@ def plan_arcs(
     )
 
 
-Guess = tuple[list[int], list[int], list[float]]
-
-
 def _unique(guesses: list[Guess]) -> list[Guess]:
     return list({(tuple(g[0]), tuple(g[1]), tuple(g[2])): g for g in guesses}.values())
 
@@ -576,14 +576,14 @@ def _braked(problem: _Problem, guess: Guess) -> Guess:
 
 def _alternatives(
     problem: _Problem, signs: list[int], holds: list[int], taus: list[float], step_s: float
-) -> list[tuple[list[int], list[int], list[float]]]:
+) -> list[Guess]:
     """Structures next to a grid plan's, seeded from its switch times, for when its own has no
     root: each short arc left out (a grid's partial step where the continuous path has no
     arc), each hold left out (a grid pinned on the limit where the path only touches it),
     holds put in where the servo turns back near the limit (a grid that rounded a short hold
     into the bang: one at a time and all at once), and to each of these, arcs added in front
     or at the end (``_repairs``)."""
-    out: list[tuple[list[int], list[int], list[float]]] = []
+    out: list[Guess] = []
     n = len(signs)
     for i in range(n):
         if holds[i] or taus[i] <= _SHORT_ARC_STEPS * step_s:
@@ -630,7 +630,7 @@ def _hold_at(
     taus: list[float],
     turns: list[tuple[int, float]],
     step_s: float,
-) -> tuple[list[int], list[int], list[float]]:
+) -> Guess:
     """The guess with a hold put in at each turn (arc, time into it): the arc is split there,
     braking onto the limit before the hold and leaving it after."""
     at = dict(turns)
