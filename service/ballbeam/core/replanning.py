@@ -17,6 +17,15 @@ Each 1 ms cycle:
   information adds up, starting from a Gaussian prior (the design values, broad), so the
   estimate always has a covariance: the controller's margins are read from it. A window the
   current estimate does not predict (a tap, a hard stop) is left out by a χ² test.
+* **Noise** (``NoiseEstimate``): the position sensor's noise is the bench's, not a datasheet's.
+  Every 100 ms window of position samples is fitted by its own x0 + v0·t + ½b·t² + g∫∫θ (a
+  model that explains the ball's motion, manoeuvres included); the residuals' squares and
+  degrees of freedom are pooled from a weak prior (a scaled-inverse-χ² posterior, so the
+  estimate has a confidence), a window improbably noisy against the rest (a hard stop) left
+  out, the result floored at the ADC's quantisation. The identification's weights, the
+  filter's R (so the rest threshold read from its covariance) and the design's steady
+  observer (the terminal set, the detour test, the tracker's reserve) use its upper
+  confidence bound.
 * **Plan**: minimum-time arcs (``planning.arcs``) of the *identified* model, in drive units
   (the voltage past the dead zone). The usable drive is (5 V · α̂ − ĉ − z·σ) / α̂: the lower
   confidence bound of the full-voltage drive, less a reserve for the tracker sized from the
