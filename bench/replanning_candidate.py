@@ -80,7 +80,7 @@ def one_run(
         targets=((0.0, target),),
         settings=Settings(
             encoder_step_rad=params.encoder_step_rad,
-            position_noise_m=params.position_noise_m,
+            adc_step_m=params.adc_step_m,
             **(settings or {}),
         ),
     )

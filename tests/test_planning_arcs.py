@@ -9,6 +9,8 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
+import ballbeam.core.planning.arcs as arcs
+import ballbeam.core.planning.time_optimal as time_optimal
 from ballbeam.core.model import LinearModel, PhysicalConstants
 from ballbeam.core.planning.arcs import ArcPlan, plan_arcs, replan
 from ballbeam.core.planning.time_optimal import plan_time_optimal
@@ -19,9 +21,11 @@ THETA_MAX = math.radians(52.0)
 PAPER_START = np.array([-THETA_MAX, 0.0, 0.0, 0.195])
 
 
-def integrate(plan: ArcPlan, start: np.ndarray) -> tuple[np.ndarray, float]:
+def integrate(
+    plan: ArcPlan, start: np.ndarray, model: LinearModel = MODEL
+) -> tuple[np.ndarray, float]:
     """End state and largest |θ| of the plan's inputs applied to ẋ = Ax + Bu by RK45."""
-    A, B = MODEL.A, MODEL.B[:, 0]
+    A, B = model.A, model.B[:, 0]
     state = np.array(start, dtype=float)
     biggest = abs(state[0])
     for u, tau in zip(plan.input_v, plan.duration_s_each, strict=True):
@@ -121,3 +125,108 @@ def test_replan_follows_a_model_update() -> None:
     assert again is not None
     grid = plan_time_optimal(stronger, state, voltage_limit_v=5.0, theta_max_rad=THETA_MAX)
     assert -1e-9 <= grid.duration_s - again.duration_s <= 1.5e-3
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_cold_plans_on_random_plants_are_the_fine_grid_optimum(seed: int) -> None:
+    """Random starts (short and long, rolling, the servo turning) on plants across issue 27's
+    ranges: the cold plan rests at the target by numerical integration, within the limit, and
+    is the optimum that the grid LP on a 0.5 ms grid (four times finer than any grid the cold
+    path uses) approaches from above within its step."""
+    rng = np.random.default_rng([27, seed])
+    ball, motor = rng.uniform(0.7, 1.3), rng.uniform(0.8, 1.2)
+    reach_m = 0.05 if seed % 2 else 0.2
+    start = np.array(
+        [
+            math.radians(rng.uniform(-45.0, 45.0)),
+            rng.uniform(-0.3, 0.3),
+            rng.uniform(-0.15, 0.15),
+            rng.uniform(-reach_m, reach_m),
+        ]
+    )
+    model = LinearModel.from_constants(
+        PhysicalConstants(), ball_gain_scale=ball, motor_gain_scale=motor
+    )
+    plan = plan_arcs(model, start)
+    end, biggest = integrate(plan, start, model)
+    np.testing.assert_allclose(end, 0.0, atol=1e-7)
+    assert biggest <= THETA_MAX * (1.0 + 1e-7)
+    fine = plan_time_optimal(
+        model, start, voltage_limit_v=5.0, theta_max_rad=THETA_MAX, step_s=5e-4
+    )
+    # no longer than a 2 ms step over the fine grid's optimum, and not below what the fine
+    # grid allows (its step, and its samples kept inside the limit by its intersample margin)
+    assert plan.duration_s <= fine.duration_s + 2e-3
+    assert fine.duration_s - plan.duration_s <= 5e-4 + 2e-4
+
+
+# Formerly stalled a run (issue 27's draw 47, run 34: the controller's first cold plans,
+# 2.33 V of drive while its model was still uncertain): the 10 and 2 ms grids' shapes had no
+# root, and the search on the 0.5 ms grid fell back to its whole problem, ~1 s an LP.
+STALLING_START = np.array([0.3512816004258118, 0.0, 0.0, 0.03980919799804688])
+STALLING_VOLTAGE_V = 2.331895244200825
+STALLING_THETA_MAX = 0.9023352232810684
+
+
+def count_lps(monkeypatch: pytest.MonkeyPatch) -> list[float]:
+    """The grid step of every LP the grid planner solves; one finer than 2 ms fails the test
+    at once (the cold path must not reach the fine grids)."""
+    steps: list[float] = []
+    solve = time_optimal._solve_steps
+
+    def counted(grid, *args, **kwargs):  # type: ignore[no-untyped-def]
+        steps.append(grid.step_s)
+        assert grid.step_s >= 2e-3 - 1e-12, f"an LP on the {grid.step_s * 1e3:g} ms grid"
+        return solve(grid, *args, **kwargs)
+
+    monkeypatch.setattr(time_optimal, "_solve_steps", counted)
+    return steps
+
+
+def test_the_formerly_stalling_start_plans_without_the_fine_grid(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    steps = count_lps(monkeypatch)
+    plan = plan_arcs(
+        MODEL,
+        STALLING_START,
+        voltage_limit_v=STALLING_VOLTAGE_V,
+        theta_max_rad=STALLING_THETA_MAX,
+    )
+    assert 0 < len(steps) <= 2 * arcs._COLD_LP_SOLVES_PER_GRID
+    end, biggest = integrate(plan, STALLING_START)
+    np.testing.assert_allclose(end, 0.0, atol=1e-7)
+    assert biggest <= STALLING_THETA_MAX * (1.0 + 1e-7)
+
+
+def test_a_cold_plan_without_any_root_is_refused_within_the_lp_bound(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Newton made never to converge: every structure tried fails, and the plan is refused
+    after the 10 and 2 ms grids, not searched for on finer ones."""
+    steps = count_lps(monkeypatch)
+    tried: list[int] = []
+
+    def never(problem, inputs, holds, taus, max_iterations=15):  # type: ignore[no-untyped-def]
+        tried.append(len(taus))
+        return arcs._Root(list(taus), [], False)
+
+    monkeypatch.setattr(arcs, "_newton", never)
+    with pytest.raises(PlanningError):
+        plan_arcs(MODEL, PAPER_START)
+    assert 0 < len(steps) <= 2 * arcs._COLD_LP_SOLVES_PER_GRID
+    assert len(tried) > 2  # the structures next to the grid's were tried too
+
+
+def test_the_grid_planner_stops_at_its_lp_bound(monkeypatch: pytest.MonkeyPatch) -> None:
+    steps = count_lps(monkeypatch)
+    with pytest.raises(PlanningError, match="3 LP solves"):
+        plan_time_optimal(
+            MODEL,
+            PAPER_START,
+            voltage_limit_v=5.0,
+            theta_max_rad=THETA_MAX,
+            step_s=2e-3,
+            max_lp_solves=3,
+        )
+    assert len(steps) == 3

@@ -309,7 +309,12 @@ def test_the_terminal_set_is_left_only_beyond_the_estimates_uncertainty() -> Non
         raw += not controller._in_terminal_set()
     assert left / len(errors) < 0.01
     assert 0.3 < raw / len(errors) < 0.7
-    controller.estimate = boundary * 3.0  # far outside: left
+    # far outside: along the ray the set's norm √(eᵀPe) grows linearly, so this point is ten
+    # of the estimate's standard deviations along that norm beyond the boundary: left
+    root = math.sqrt(d.terminal_level)
+    gradient = d.P_terminal @ boundary / root
+    sigma = math.sqrt(float(gradient @ d.estimate_covariance @ gradient))
+    controller.estimate = boundary * (1.0 + 10.0 * sigma / root)
     assert controller._left_terminal_set()
 
 

@@ -19,6 +19,7 @@ import socket
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import can
@@ -158,8 +159,16 @@ def _check_slow_machine_figures(summary: dict[str, object], processes_started: i
 # the classic vcan, with standard tools writing and reading frames while they go.
 
 
+# candump's socket buffer: the VM's emulated CPUs stall for seconds while the runs' processes
+# start, and the default buffer (a few hundred frames) then overflows.
+CANDUMP_BUFFER_BYTES = 8 << 20
+
+
 def _candump(interface: str) -> subprocess.Popen[str]:
-    dump = subprocess.Popen(["candump", "-L", interface], stdout=subprocess.PIPE, text=True)
+    dump = subprocess.Popen(
+        ["candump", "-d", "-r", str(CANDUMP_BUFFER_BYTES), "-L", interface],
+        stdout=subprocess.PIPE, text=True,
+    )
     time.sleep(0.5)  # it binds before the run starts
     return dump
 
@@ -169,6 +178,8 @@ def _dumped(dump: subprocess.Popen[str]) -> list[tuple[int, bytes]]:
     out, _ = dump.communicate(timeout=10)
     frames = []
     for line in out.splitlines():
+        # -d: the kernel's count of frames the socket dropped, when it grows
+        assert not line.startswith("DROPCOUNT"), f"candump lost frames: {line}"
         # "(1700000000.123456) vcan0 101#0A0B..." (classic) or "101##0..." (CAN FD, flags nibble)
         match = re.fullmatch(r"\(\S+\) \S+ ([0-9A-F]{3})#(#[0-9A-F])?([0-9A-F]*)", line.strip())
         assert match, line
@@ -204,37 +215,60 @@ def _sample_once_running(interface: str, fd: bool, run: subprocess.Popen[str]) -
 VM_TIMEOUT = pytest.mark.timeout(1500)
 
 
+@dataclass(frozen=True)
+class VcanRuns:
+    """The two runs' outcomes: the one under auto on the CAN FD vcan, the one on the classic
+    vcan with what candump recorded there, and the wrong-CRC frame cansend wrote on it."""
+
+    fd: dict[str, object]
+    classic: dict[str, object]
+    classic_frames: list[tuple[int, bytes]]
+    classic_wrong_crc: bytes
+
+
+# What each run has started beside it while it goes (processes stall the VM's emulated CPUs):
+# the other run's three (launcher, daemon, emulator) and every cansend and candump.
+FD_CANSENDS, CLASSIC_CANSENDS = 9, 1
+STARTED_BESIDE_FD = FD_CANSENDS + 3 + CLASSIC_CANSENDS
+STARTED_BESIDE_CLASSIC = CLASSIC_CANSENDS + 3 + FD_CANSENDS
+
+
 @pytest.fixture(scope="module")
-def fd_run(vcan_fd: str, can_utils: None, log_dir: Path) -> dict[str, object]:
-    """A run under auto (it takes the CAN FD vcan), and can-utils' cansend writing forged (a
-    zeroed MAC), replayed (an authentic frame heard earlier) and classic frames with a wrong
-    CRC, three of each, while it goes."""
-    run = _run(log_dir, wait=False)
-    authentic = _sample_once_running(vcan_fd, fd=True, run=run)
+def vcan_runs(vcan_fd: str, vcan_classic: str, can_utils: None, log_dir: Path) -> VcanRuns:
+    """Both runs at once (each is a lock-step ping-pong that keeps about one of the VM's two
+    emulated CPUs busy; one after the other they took most of the CI step's budget).
+
+    On the CAN FD vcan, under auto: can-utils' cansend writes forged (a zeroed MAC), replayed
+    (an authentic frame heard earlier) and classic frames with a wrong CRC, three of each.
+    On the classic vcan (named: socketcan's default contract is the classic one): candump
+    records it, and cansend writes one sensor frame with a wrong CRC."""
+    dump = _candump(vcan_classic)
+    fd = _run(log_dir, wait=False)
+    classic = _run(log_dir, "bus.interface='socketcan'", f"bus.channel='{vcan_classic}'",
+                   wait=False)
+    authentic = _sample_once_running(vcan_fd, fd=True, run=fd)
     assert len(authentic) == 24
     forged = authentic[:16] + bytes(8)
     wrong_crc = bytes((authentic[0] ^ 0xFF,)) + authentic[1:8]
-    for _ in range(3):
+    for _ in range(FD_CANSENDS // 3):
         _cansend(vcan_fd, SENSOR_ID, forged, fd=True)
         _cansend(vcan_fd, SENSOR_ID, authentic, fd=True)  # its freshness is past
         _cansend(vcan_fd, SENSOR_ID, wrong_crc, fd=False)
-    return _summary(run)
+    classic_authentic = _sample_once_running(vcan_classic, fd=False, run=classic)
+    classic_wrong_crc = bytes((classic_authentic[0] ^ 0xFF,)) + classic_authentic[1:]
+    _cansend(vcan_classic, SENSOR_ID, classic_wrong_crc, fd=False)
+    fd_summary, classic_summary = _summary(fd), _summary(classic)
+    return VcanRuns(fd_summary, classic_summary, _dumped(dump), classic_wrong_crc)
 
 
 @pytest.fixture(scope="module")
-def classic_run(
-    vcan_classic: str, can_utils: None, log_dir: Path
-) -> tuple[dict[str, object], list[tuple[int, bytes]], bytes]:
-    """A run on the classic vcan (named: socketcan's default contract is the classic one),
-    candump recording it, and one sensor frame with a wrong CRC from cansend."""
-    dump = _candump(vcan_classic)
-    run = _run(log_dir, "bus.interface='socketcan'", f"bus.channel='{vcan_classic}'",
-               wait=False)
-    authentic = _sample_once_running(vcan_classic, fd=False, run=run)
-    wrong_crc = bytes((authentic[0] ^ 0xFF,)) + authentic[1:]
-    _cansend(vcan_classic, SENSOR_ID, wrong_crc, fd=False)
-    summary = _summary(run)
-    return summary, _dumped(dump), wrong_crc
+def fd_run(vcan_runs: VcanRuns) -> dict[str, object]:
+    return vcan_runs.fd
+
+
+@pytest.fixture(scope="module")
+def classic_run(vcan_runs: VcanRuns) -> tuple[dict[str, object], list[tuple[int, bytes]], bytes]:
+    return vcan_runs.classic, vcan_runs.classic_frames, vcan_runs.classic_wrong_crc
 
 
 @pytest.mark.vcan
@@ -252,7 +286,7 @@ def test_auto_runs_authenticated_on_the_fd_vcan_and_says_so(
     authenticated = received["dlc"] != 8  # 8: cansend's classic frames
     assert set(np.unique(received["dlc"][authenticated])) == {24}  # SecOC, CAN FD lengths
     assert np.count_nonzero(~authenticated) == 3
-    _check_slow_machine_figures(fd_run, processes_started=9)
+    _check_slow_machine_figures(fd_run, processes_started=STARTED_BESIDE_FD)
 
 
 @pytest.mark.vcan
@@ -282,7 +316,7 @@ def test_classic_vcan_carries_the_e2e_contract_that_candump_and_cantools_read(
     run_log = read_log(Path(str(summary["log_path"])))
     assert run_log.metadata["run"]["authenticated"] == "false"
     assert int(run_log.metadata["summary"]["rejected_crc"]) == 1
-    _check_slow_machine_figures(summary, processes_started=1)
+    _check_slow_machine_figures(summary, processes_started=STARTED_BESIDE_CLASSIC)
     logged_v = _commands(summary)
     database = cantools.database.load_file(str(FrameContract.load().path))
     ours = [(frame_id, data) for frame_id, data in frames if data != wrong_crc]

@@ -528,7 +528,9 @@ def replanning_settings(config: Config) -> Settings:
         voltage_limit_v=config.limits.voltage_v,
         theta_limit_rad=config.limits.theta_rad,
         encoder_step_rad=config.sensors.encoder_step_rad,
-        position_noise_m=position_noise_m(config),
+        adc_step_m=config.sensors.adc_step_m(physical_constants(config).beam_length_m),
+        # the config's noise level is the estimate's prior, not the level it designs with
+        position_noise_prior_m=position_noise_m(config),
         prior_alpha=float(model.B[1, 0]),
         prior_pole_per_s=float(-model.A[1, 1]),
         prior_gamma=float(model.A[2, 0]),

@@ -17,6 +17,15 @@ Each 1 ms cycle:
   information adds up, starting from a Gaussian prior (the design values, broad), so the
   estimate always has a covariance: the controller's margins are read from it. A window the
   current estimate does not predict (a tap, a hard stop) is left out by a χ² test.
+* **Noise** (``NoiseEstimate``): the position sensor's noise is the bench's, not a datasheet's.
+  Every 100 ms window of position samples is fitted by its own x0 + v0·t + ½b·t² + g∫∫θ (a
+  model that explains the ball's motion, manoeuvres included); the residuals' squares and
+  degrees of freedom are pooled from a weak prior (a scaled-inverse-χ² posterior, so the
+  estimate has a confidence), a window improbably noisy against the rest (a hard stop) left
+  out, the result floored at the ADC's quantisation. The identification's weights, the
+  filter's R (so the rest threshold read from its covariance) and the design's steady
+  observer (the terminal set, the detour test, the tracker's reserve) use its upper
+  confidence bound.
 * **Plan**: minimum-time arcs (``planning.arcs``) of the *identified* model, in drive units
   (the voltage past the dead zone). The usable drive is (5 V · α̂ − ĉ − z·σ) / α̂: the lower
   confidence bound of the full-voltage drive, less a reserve for the tracker sized from the
@@ -51,6 +60,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.linalg
+import scipy.stats
 
 from ballbeam.core.guard import AngleGuard, guarded_voltage, make_angle_guard, make_soft_cap
 from ballbeam.core.model import BALL_POSITION, THETA, LinearModel, as_row4
@@ -83,6 +93,10 @@ _C = np.array([[57.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 100.0]])
 # A window is left out when its own best fit leaves χ² beyond dof + this many standard
 # deviations of χ² (√(2·dof)).
 _OUTLIER_SIGMAS = 6.0
+# ... the same tail, for the noise estimate's F-test
+_OUTLIER_TAIL = float(scipy.stats.norm.sf(_OUTLIER_SIGMAS))
+# Singular values below this fraction of the largest: columns that coincide (counted once).
+_RANK_TOLERANCE = 1e-9
 # The re-shaping solve (Gauss-Newton on exact Jacobians): its stopping test on residuals in
 # the problem's own units, and its iteration bound.
 _RESHAPE_TOLERANCE = 1e-9
@@ -91,14 +105,18 @@ _RESHAPE_ITERATIONS = 8
 
 class WindowedLeastSquares:
     """Bayesian least squares of global parameters over windows, each window with its own
-    nuisance parameters (its initial conditions) projected out. Starts from a Gaussian prior."""
+    nuisance parameters (its initial conditions) projected out. Starts from a Gaussian prior.
+    The windows' sums are kept unscaled, so the noise variance ``noise_var`` (common to all
+    windows) may be re-estimated as the run goes and every window re-weighted by it."""
 
     def __init__(self, prior_mean: np.ndarray, prior_std: np.ndarray, noise_std: float) -> None:
         prior_std = np.asarray(prior_std, dtype=float)
         if not (noise_std > 0.0 and np.all(prior_std > 0.0)):
             raise ConfigError("identification needs positive prior and noise deviations")
-        self.information = np.diag(1.0 / prior_std**2)
-        self.vector = self.information @ np.asarray(prior_mean, dtype=float)
+        self.prior_information = np.diag(1.0 / prior_std**2)
+        self.prior_vector = self.prior_information @ np.asarray(prior_mean, dtype=float)
+        self.data_information = np.zeros_like(self.prior_information)  # Σ ΦᵀΦ
+        self.data_vector = np.zeros_like(self.prior_vector)  # Σ Φᵀy
         self.noise_var = noise_std**2
         self.windows = 0
         self.rejected = 0
@@ -123,14 +141,20 @@ class WindowedLeastSquares:
         if dof <= 0 or chi2 > dof + _OUTLIER_SIGMAS * math.sqrt(2.0 * dof):
             self.rejected += 1
             return False
-        self.information += regressors_p.T @ regressors_p / self.noise_var
-        self.vector += regressors_p.T @ y_p / self.noise_var
+        self.data_information += regressors_p.T @ regressors_p
+        self.data_vector += regressors_p.T @ y_p
         self.windows += 1
         return True
 
     @property
+    def information(self) -> np.ndarray:
+        result: np.ndarray = self.prior_information + self.data_information / self.noise_var
+        return result
+
+    @property
     def mean(self) -> np.ndarray:
-        result: np.ndarray = np.linalg.solve(self.information, self.vector)
+        vector = self.prior_vector + self.data_vector / self.noise_var
+        result: np.ndarray = np.linalg.solve(self.information, vector)
         return result
 
     @property
@@ -178,6 +202,75 @@ def ball_window(
     once = _integral_of_sampled(theta_rad, period_s)
     twice = _integral_of_sampled(once, period_s)
     return np.asarray(position_m, dtype=float), nuisance, twice[:, None]
+
+
+def noise_window(
+    theta_rad: np.ndarray, position_m: np.ndarray, period_s: float
+) -> tuple[float, int]:
+    """(residual sum of squares, its degrees of freedom) of the position samples (n,) about
+    the window's own best fit of x = x0 + v0·t + ½b·t² + g∫∫θ: the ball's motion as the model
+    explains it (g any gain; b what it leaves out, constant over a short window), so what is
+    left is the sensor's noise. Columns that coincide (θ held: ∫∫θ ∝ t²) count once."""
+    n = len(position_m)
+    t = np.arange(n) * period_s
+    once = _integral_of_sampled(theta_rad, period_s)
+    columns = np.column_stack([np.ones(n), t, t * t, _integral_of_sampled(once, period_s)])
+    norms = np.linalg.norm(columns, axis=0)
+    columns = columns / np.where(norms > 0.0, norms, 1.0)
+    u, singular, _ = np.linalg.svd(columns, full_matrices=False)
+    basis = u[:, singular > _RANK_TOLERANCE * singular[0]]
+    y = np.asarray(position_m, dtype=float)
+    residual = y - basis @ (basis.T @ y)
+    return float(residual @ residual), n - basis.shape[1]
+
+
+class NoiseEstimate:
+    """The position sensor's noise variance σ², pooled from a scaled-inverse-χ² prior
+    (``prior_std_m`` worth ``prior_dof`` degrees of freedom) and the residuals of windows
+    (``noise_window``): after ν degrees of freedom the estimate's relative standard deviation
+    (of σ) is 1/√(2ν). Floored at ``floor_m`` (the ADC's quantisation: no reading is finer).
+    A window whose variance is improbably large against the pooled estimate (F-test, the
+    tail of ``_OUTLIER_SIGMAS`` normal deviations; a tap, a hard stop) is left out; a small
+    one is never refused (the estimate may only move towards trusting the sensor through
+    many degrees of freedom, never through one window)."""
+
+    def __init__(self, prior_std_m: float, prior_dof: float, floor_m: float) -> None:
+        if not (prior_std_m > 0.0 and prior_dof > 0.0 and floor_m >= 0.0):
+            raise ConfigError("the noise estimate needs a positive prior and weight")
+        self.sum_squares_m2 = prior_dof * prior_std_m**2
+        self.dof = float(prior_dof)
+        self.floor_var_m2 = floor_m**2
+        self.windows = 0
+        self.rejected = 0
+
+    def add(self, sum_squares_m2: float, dof: int) -> bool:
+        if dof <= 0:
+            return False
+        ratio = sum_squares_m2 / dof / self.variance_m2
+        if ratio > scipy.stats.f.isf(_OUTLIER_TAIL, dof, self.dof):
+            self.rejected += 1
+            return False
+        self.sum_squares_m2 += sum_squares_m2
+        self.dof += dof
+        self.windows += 1
+        return True
+
+    @property
+    def variance_m2(self) -> float:
+        return max(self.sum_squares_m2 / self.dof, self.floor_var_m2)
+
+    @property
+    def std_m(self) -> float:
+        return math.sqrt(self.variance_m2)
+
+    @property
+    def relative_std(self) -> float:
+        """The estimate's relative standard deviation (of σ)."""
+        return 1.0 / math.sqrt(2.0 * self.dof)
+
+    def upper_m(self, z: float) -> float:
+        """σ's upper confidence bound, z standard deviations."""
+        return self.std_m * (1.0 + z * self.relative_std)
 
 
 def _reshape_system(
@@ -338,9 +431,17 @@ class Settings:
     period_s: float = 1e-3
     voltage_limit_v: float = 5.0  # the command's bound
     theta_limit_rad: float = math.radians(52.0)  # the servo must never pass it
-    # Sensor noise (the identification's and the observer's noise model).
+    # The sensors' resolution: datasheet facts (4096 counts a turn; a ±10 V 16-bit ADC over
+    # the track's 10 V on a 0.4318 m beam).
     encoder_step_rad: float = 2.0 * math.pi / 4096.0
-    position_noise_m: float = 2e-4
+    adc_step_m: float = 20.0 / 2**16 * 0.4318 / 10.0
+    # The position sensor's noise is the bench's, not a datasheet's: it is estimated online
+    # (``NoiseEstimate``) from this prior, the design's nominal level worth this many degrees
+    # of freedom (a factor of a few either way is not unlikely under it: the first window
+    # outweighs it), and the design uses its upper confidence bound (``confidence_z``).
+    position_noise_prior_m: float = 2e-4
+    position_noise_prior_dof: float = 2.0
+    noise_window: int = 100  # samples a noise window: an estimate within the first 0.1 s
     # Prior of the identification: the design's gains, broad enough for the plants in range.
     prior_alpha: float = 108.896
     prior_pole_per_s: float = 58.466
@@ -429,7 +530,8 @@ class _Design:
     headroom_v: float  # the plan's drive kept below that for re-shaping
 
 
-def _design(identified: Identified, s: Settings) -> _Design:
+def _design(identified: Identified, s: Settings, position_noise_m: float) -> _Design:
+    """The design for ``identified`` and the position noise ``position_noise_m`` (σ)."""
     discrete = identified.model().discretize(s.period_s)
     Ad, Bd = discrete.Ad, discrete.Bd
     z = s.confidence_z
@@ -441,7 +543,7 @@ def _design(identified: Identified, s: Settings) -> _Design:
             identified.gamma_std * s.theta_limit_rad, s.unmodelled_ball_m_s2
         ),
         angle_noise_rad=s.encoder_step_rad / math.sqrt(12.0),
-        position_noise_m=s.position_noise_m,
+        position_noise_m=position_noise_m,
     )
     if s.track_ball:
         K, _ = dlqr(Ad, Bd, s.track_q, s.track_r)
@@ -509,7 +611,7 @@ def _design(identified: Identified, s: Settings) -> _Design:
         ),
         ball_process_noise=process_noise_covariance(discrete, 0.0, 1.0),
         measurement_noise=measurement_noise_covariance(
-            _C, s.encoder_step_rad / math.sqrt(12.0), s.position_noise_m
+            _C, s.encoder_step_rad / math.sqrt(12.0), position_noise_m
         ),
         drive_max_v=drive_max,
         ramp_v=ramp,
@@ -571,6 +673,7 @@ class DesignRequest:
     identified: Identified
     settings: Settings
     gamma_error: float = 0.0
+    position_noise_m: float = 2e-4  # the noise level the design is for
 
 
 @dataclass(frozen=True)
@@ -581,7 +684,10 @@ class DesignAnswer:
 
 def solve_design_request(request: DesignRequest) -> DesignAnswer:
     """The design (observer, tracker, terminal set, guard) of the identified plant. Pure."""
-    return DesignAnswer(request.cycle, _design(request.identified, request.settings))
+    return DesignAnswer(
+        request.cycle,
+        _design(request.identified, request.settings, request.position_noise_m),
+    )
 
 
 def solve_request(request: PlanRequest | DesignRequest) -> PlanAnswer | DesignAnswer:
@@ -729,6 +835,12 @@ class ReplanningController:
     design_outstanding: DesignRequest | None = field(init=False, default=None)
     design_issued: DesignRequest | None = field(init=False, default=None)
     _sampler: _PlanSampler | None = field(init=False, default=None)
+    _noise_from: int = field(init=False, default=0)
+    # (time [s], σ̂ [m], its relative standard deviation, the σ the design uses [m]) at the
+    # start and after each noise window
+    noise_history: list[tuple[float, float, float, float]] = field(
+        init=False, default_factory=list
+    )
 
     def __post_init__(self) -> None:
         s = self.settings
@@ -743,10 +855,17 @@ class ReplanningController:
             ]),
             s.encoder_step_rad / math.sqrt(12.0),
         )
-        self.ball_ls = WindowedLeastSquares(
-            np.array([s.prior_gamma]), np.array([rel * abs(s.prior_gamma)]), s.position_noise_m
+        self.noise = NoiseEstimate(
+            s.position_noise_prior_m, s.position_noise_prior_dof, s.adc_step_m / math.sqrt(12.0)
         )
-        self.design = _design(self._identified(), s)
+        self.noise_history.append(
+            (0.0, self.noise.std_m, self.noise.relative_std, self.position_noise_m)
+        )
+        self.ball_ls = WindowedLeastSquares(
+            np.array([s.prior_gamma]), np.array([rel * abs(s.prior_gamma)]),
+            self.position_noise_m,
+        )
+        self.design = _design(self._identified(), s, self.position_noise_m)
         self.estimate = np.array(self.initial_state, dtype=float)
 
     def _identified(self) -> Identified:
@@ -764,6 +883,11 @@ class ReplanningController:
     @property
     def identified(self) -> Identified:
         return self.design.identified
+
+    @property
+    def position_noise_m(self) -> float:
+        """The position noise σ the design assumes: the estimate's upper confidence bound."""
+        return self.noise.upper_m(self.settings.confidence_z)
 
     def set_target(self, target_m: float) -> None:
         self.target_m = float(target_m)
@@ -878,7 +1002,10 @@ class ReplanningController:
                     identified, gamma=d.identified.gamma + gamma_error,
                     gamma_std=math.sqrt(float(self._covariance[4, 4])),
                 )
-            self._request_design(DesignRequest(self.cycle, identified, s, gamma_error))
+            self.ball_ls.noise_var = self.position_noise_m**2
+            self._request_design(
+                DesignRequest(self.cycle, identified, s, gamma_error, self.position_noise_m)
+            )
             d = self.design
         record = self._drive()
         command = self._compensate(record.plan_drive_v)
@@ -943,6 +1070,15 @@ class ReplanningController:
                 )
             )
             self._ball_from = k
+        if k - self._noise_from >= s.noise_window:
+            start = self._noise_from
+            self.noise.add(*noise_window(
+                np.array(self._theta[start:k]), np.array(self._position[start:k]), s.period_s
+            ))
+            self.noise_history.append((
+                k * s.period_s, self.noise.std_m, self.noise.relative_std, self.position_noise_m
+            ))
+            self._noise_from = k
 
     def _error(self) -> np.ndarray:
         e = self.estimate.copy()
@@ -1130,9 +1266,8 @@ def run_closed_loop(
 ) -> ClosedLoopRun:
     """The candidate on ``plant`` from ``initial_state`` for ``duration_s``; ``targets``: a
     step schedule ((time_s, target_m), ...) from 0. Taps are the plant's own."""
-    s = settings or Settings(
-        encoder_step_rad=plant.encoder_step_rad, position_noise_m=plant.position_noise_m
-    )
+    # the sensors' resolution is a datasheet's; their noise the controller estimates
+    s = settings or Settings(encoder_step_rad=plant.encoder_step_rad, adc_step_m=plant.adc_step_m)
     rng = np.random.default_rng(seed)
     physics = PlantPhysics(plant)
     state = np.array(initial_state, dtype=float)

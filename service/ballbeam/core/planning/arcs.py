@@ -17,8 +17,14 @@ Where the roots come from:
   Newton follows it in a few steps. Arcs that shrink to nothing are dropped and the rest solved
   again.
 * **cold** (``plan_arcs``): the grid planner (``time_optimal``, HiGHS on a coarse grid) gives the
-  structure and a guess, which Newton makes exact. That planner is the slow, sure path; this
-  module makes its answer continuous and cheap to re-solve.
+  structure and a guess, which Newton makes exact; where the coarse shape has no root, the
+  same on a finer grid, but never finer than ``_FINEST_COLD_STEP_S`` (the LPs of a long path
+  on a fine grid are slow, and the step search may fall back to the whole
+  problem). A grid may blur the structure (a short hold rounded into a bang, a coast for a
+  hold, a short arc for a neighbour's partial step), so where the finest grid's own shape
+  has no root either, the structures next to it are tried from its switch times, and the
+  shortest valid root no longer than that grid's plan wins. The LPs are bounded per grid,
+  so a cold plan ends, found or refused (PlanningError), in bounded time.
 
 Every root is checked before it is believed: durations ≥ 0, and |θ| ≤ θm on every arc in closed
 form (θ̇ is monotone over a held input, so θ has at most one extremum an arc).
@@ -43,16 +49,32 @@ from ballbeam.errors import PlanningError
 __all__ = ["ArcPlan", "arcs_from_grid", "plan_arcs", "replan", "solve_arcs"]
 
 State = tuple[float, float, float, float]
+# A structure and its durations: (signs, holds, durations), as ``solve_arcs`` takes them.
+Guess = tuple[list[int], list[int], list[float]]
 
 # Newton's stopping test, on residuals scaled to the problem's own units (θm, U/β, ...).
 _TOLERANCE = 1e-11
 _MAX_ITERATIONS = 15
+# A cold guess comes from a grid, further from the root than a warm one (a long hold's
+# entry blurred over several steps): Newton gets more steps there.
+_COLD_ITERATIONS = 60
 # An arc this short (s) after convergence is dropped and the rest solved again.
 _NEGLIGIBLE_S = 1e-9
 # Angle overshoot accepted from rounding (relative to θm).
 _THETA_SLACK = 1e-9
 # Duration guessed for an arc a re-plan puts in (Newton sizes it).
 _SEED_S = 1e-3
+# The cold path's grids: the given coarse step, then this one (not finer: the LPs of a long
+# path grow with the step count and the search may fall back to the whole problem).
+_FINEST_COLD_STEP_S = 2e-3
+# LP solves a cold plan may spend on each grid (HiGHS; the step search, see time_optimal).
+_COLD_LP_SOLVES_PER_GRID = 24
+# An arc at most this many grid steps long may be an artefact of the grid: tried without it.
+_SHORT_ARC_STEPS = 2.0
+# A grid's coast this close to the limit (fraction of its largest angle) may stand for a hold.
+_COAST_HOLD_FRACTION = 0.97
+# A servo that turns back within this fraction of θm may belong on the limit for a while.
+_NEAR_LIMIT = 0.8
 
 
 @dataclass(frozen=True)
@@ -172,7 +194,11 @@ class _Root:
 
 
 def _newton(
-    problem: _Problem, inputs: Sequence[float], holds: Sequence[int], taus: Sequence[float]
+    problem: _Problem,
+    inputs: Sequence[float],
+    holds: Sequence[int],
+    taus: Sequence[float],
+    max_iterations: int = _MAX_ITERATIONS,
 ) -> _Root:
     """Durations ≥ 0 that zero the residuals: Levenberg-Marquardt (Gauss-Newton steps, damped
     where the guess is far: arcs put in by a re-plan start far from their size, and undamped
@@ -183,7 +209,7 @@ def _newton(
     r = np.array(r_list)
     cost = float(r @ r)
     damping = 1e-6
-    for _ in range(_MAX_ITERATIONS):
+    for _ in range(max_iterations):
         if max(abs(v) for v in r_list) < _TOLERANCE:
             return _Root(x.tolist(), states, True)
         H = J.T @ J
@@ -230,15 +256,20 @@ def _merge(signs: list[int], holds: list[int], taus: list[float]) -> None:
 
 
 def solve_arcs(
-    problem: _Problem, signs: Sequence[int], holds: Sequence[int], taus: Sequence[float]
+    problem: _Problem,
+    signs: Sequence[int],
+    holds: Sequence[int],
+    taus: Sequence[float],
+    max_iterations: int = _MAX_ITERATIONS,
 ) -> tuple[list[int], list[int], list[float]] | None:
     """The root of a structure from a guess, arcs that vanish dropped: (signs, holds,
-    durations), or None when no valid root is found from this guess."""
+    durations), or None when no valid root is found from this guess within
+    ``max_iterations`` Newton steps (each time arcs are dropped)."""
     s, h, t = list(signs), list(holds), list(taus)
     for _ in range(len(s) + 1):
         _merge(s, h, t)
         inputs = _inputs(problem, s, h)
-        root = _newton(problem, inputs, h, t)
+        root = _newton(problem, inputs, h, t, max_iterations)
         if not root.converged:
             return None
         t = root.taus
@@ -376,10 +407,14 @@ def arcs_from_grid(
     step_s: float,
     voltage_v: float,
     theta_max_rad: float,
+    coast_hold_fraction: float | None = None,
 ) -> tuple[list[int], list[int], list[float]]:
     """A structure and guess from a grid plan: steps pinned on the angle limit (with their
     successor) become holds; the others full-voltage arcs as long as their impulse ∫|u| dt / U,
-    so a grid's partial steps and coasts (slack within one step) become the nearest bang."""
+    so a grid's partial steps and coasts (slack within one step) become the nearest bang.
+    With ``coast_hold_fraction``, steps of zero input whose samples both lie beyond that
+    fraction of the limit, on one side, become holds too: a grid may coast up to the limit
+    where the continuous path brakes onto it and holds."""
     theta = grid_states[:, 0]
     # a grid keeps its samples inside θm by its intersample margin: pinned is at its own bound
     # (samples after the start: the start itself may lie beyond that bound)
@@ -388,6 +423,12 @@ def arcs_from_grid(
     signs: list[int] = []
     holds: list[int] = []
     taus: list[float] = []
+    if coast_hold_fraction is not None:
+        near = np.abs(theta) >= coast_hold_fraction * np.max(np.abs(theta[1:]), initial=0.0)
+        coast = np.abs(np.asarray(input_v, dtype=float)) <= 1e-9 * voltage_v
+        pinned[:-1] |= coast & near[:-1] & near[1:]
+        pinned[1:] |= coast & near[:-1] & near[1:]
+        pinned[0] = False
     for k, u in enumerate(np.asarray(input_v, dtype=float)):
         if pinned[k] and pinned[k + 1] and np.sign(theta[k]) == np.sign(theta[k + 1]):
             kind, sign, tau = int(np.sign(theta[k])), 0, step_s
@@ -439,33 +480,174 @@ def plan_arcs(
     max_duration_s: float = 20.0,
 ) -> ArcPlan:
     """The minimum-time path from ``state`` (θ, θ̇, ẋ, x) to rest at ``target_m`` (cold start):
-    the grid planner's shape on a ``grid_step_s`` grid, made exact by Newton. Raises
-    PlanningError where the grid planner finds no path or its shape has no exact root."""
+    the grid planner's shape on a ``grid_step_s`` grid (then on ``_FINEST_COLD_STEP_S``'s; a
+    finer ``grid_step_s`` is taken as that), made exact by Newton, or the nearest structure
+    that can be. Raises PlanningError where
+    the grid planner finds no path within its LP bound or no structure near its shape has a
+    valid root no longer than the grid plan."""
     from ballbeam.core.planning.time_optimal import plan_time_optimal
 
     p = _params(model)
     problem = _problem(p, state, target_m, voltage_limit_v, theta_max_rad)
     if not any(problem.start):
         return _make(problem, target_m, ([], [], []))
-    # a coarse grid's shape is cheap but may blur a short hold into a bang: finer grids next
-    for step_s in (grid_step_s, grid_step_s / 5.0, grid_step_s / 20.0):
-        grid = plan_time_optimal(
-            model,
-            np.array(problem.start),
-            voltage_limit_v=voltage_limit_v,
-            theta_max_rad=theta_max_rad,
-            step_s=step_s,
-            max_duration_s=max_duration_s,
-        )
+    coarse_s = max(grid_step_s, _FINEST_COLD_STEP_S)
+    steps_s = (coarse_s, _FINEST_COLD_STEP_S) if coarse_s > _FINEST_COLD_STEP_S else (coarse_s,)
+    shapes: list[Guess] = []
+    for step_s in steps_s:
+        try:
+            grid = plan_time_optimal(
+                model,
+                np.array(problem.start),
+                voltage_limit_v=voltage_limit_v,
+                theta_max_rad=theta_max_rad,
+                step_s=step_s,
+                max_duration_s=max_duration_s,
+                max_lp_solves=_COLD_LP_SOLVES_PER_GRID,
+            )
+        except PlanningError:
+            if not shapes:
+                raise
+            break  # the finer grid's search ran out of LPs: the coarser shape must do
         guess = arcs_from_grid(
             grid.input_v, grid.grid_states, grid.step_s, voltage_limit_v, theta_max_rad
         )
-        solved = solve_arcs(problem, *guess)
-        if solved is not None and math.fsum(solved[2]) <= grid.duration_s + 1e-9:
-            return _make(problem, target_m, solved)
+        longest_s = grid.duration_s + 1e-9
+        found = _valid_roots(problem, [guess], longest_s)
+        if found:
+            return _make(problem, target_m, found[0])
+        coasts = arcs_from_grid(
+            grid.input_v,
+            grid.grid_states,
+            grid.step_s,
+            voltage_limit_v,
+            theta_max_rad,
+            coast_hold_fraction=_COAST_HOLD_FRACTION,
+        )
+        # the same shape, its holds entered as the continuous path enters them
+        shapes = _unique([_braked(problem, guess), _braked(problem, coasts)])
+        shape_step_s = step_s
+        found = _valid_roots(problem, shapes, longest_s)
+        if found:
+            return _make(problem, target_m, min(found, key=lambda r: math.fsum(r[2])))
+    # the finest grid's shape has no root: the structures next to it, from its switch times
+    guesses = [
+        _braked(problem, g)
+        for shape in shapes
+        for g in _alternatives(problem, *shape, shape_step_s)
+    ]
+    found = _valid_roots(problem, _unique(guesses), longest_s)
+    if found:
+        return _make(problem, target_m, min(found, key=lambda r: math.fsum(r[2])))
     raise PlanningError(
         f"no exact minimum-time arcs near the grid plans from {problem.start} (θ, θ̇, ẋ, x − target)"
     )
+
+
+def _unique(guesses: list[Guess]) -> list[Guess]:
+    return list({(tuple(g[0]), tuple(g[1]), tuple(g[2])): g for g in guesses}.values())
+
+
+def _valid_roots(problem: _Problem, guesses: list[Guess], longest_s: float) -> list[Guess]:
+    """The valid roots from the guesses that are no longer than ``longest_s`` and have no
+    more arcs than conditions (4 for rest, 2 a hold): with more, the roots form a family and
+    Newton stops on any member of it, not on the shortest."""
+    return [
+        r
+        for g in guesses
+        if (r := solve_arcs(problem, *g, _COLD_ITERATIONS)) is not None
+        and math.fsum(r[2]) <= longest_s
+        and len(r[0]) <= 4 + 2 * sum(1 for h in r[1] if h)
+    ]
+
+
+def _braked(problem: _Problem, guess: Guess) -> Guess:
+    """The guess with each arc that brakes onto a hold at least as long as braking from the
+    full-voltage slope to rest takes (ln 2 / a): a grid coasts onto the limit over several
+    steps, and counts only the steps it drives."""
+    signs, holds, taus = guess
+    brake_s = math.log(2.0) / problem.p.pole_per_s
+    out = list(taus)
+    for i in range(1, len(signs)):
+        if holds[i] and not holds[i - 1] and signs[i - 1] == -holds[i]:
+            out[i - 1] = max(out[i - 1], brake_s)
+    return list(signs), list(holds), out
+
+
+def _alternatives(
+    problem: _Problem, signs: list[int], holds: list[int], taus: list[float], step_s: float
+) -> list[Guess]:
+    """Structures next to a grid plan's, seeded from its switch times, for when its own has no
+    root: each short arc left out (a grid's partial step where the continuous path has no
+    arc), each hold left out (a grid pinned on the limit where the path only touches it),
+    holds put in where the servo turns back near the limit (a grid that rounded a short hold
+    into the bang: one at a time and all at once), and to each of these, arcs added in front
+    or at the end (``_repairs``)."""
+    out: list[Guess] = []
+    n = len(signs)
+    for i in range(n):
+        if holds[i] or taus[i] <= _SHORT_ARC_STEPS * step_s:
+            out.append(
+                (signs[:i] + signs[i + 1 :], holds[:i] + holds[i + 1 :], taus[:i] + taus[i + 1 :])
+            )
+    turns = _turns_near_limit(problem, signs, holds, taus)
+    with_holds = [_hold_at(signs, holds, taus, [turn], step_s) for turn in turns]
+    if len(turns) > 1:
+        with_holds.append(_hold_at(signs, holds, taus, turns, step_s))
+    for guess in with_holds:
+        out += [guess, *_repairs(*guess)]
+    out += _repairs(signs, holds, taus)
+    return [g for g in out if g[0]]
+
+
+def _turns_near_limit(
+    problem: _Problem, signs: list[int], holds: list[int], taus: list[float]
+) -> list[tuple[int, float]]:
+    """Where, inside a full-voltage arc that follows one of the other sign, the servo turns
+    back (θ̇ = 0) within ``_NEAR_LIMIT`` of the limit on the first arc's side: (arc, time into
+    it)."""
+    p = problem.p
+    inputs = _inputs(problem, signs, holds)
+    found: list[tuple[int, float]] = []
+    s = problem.start
+    for i, (u, tau) in enumerate(zip(inputs, taus, strict=True)):
+        sigma = -signs[i]
+        previous_bang = i > 0 and not holds[i - 1] and signs[i - 1] == sigma
+        rate = s[1]
+        w = u * p.alpha / p.pole_per_s
+        if not holds[i] and previous_bang and rate * sigma > 0.0 and w * sigma < 0.0:
+            t_turn = math.log((rate - w) / -w) / p.pole_per_s
+            theta = _step(p, s, u, t_turn)[0]
+            if 0.0 < t_turn < tau and theta * sigma >= _NEAR_LIMIT * problem.theta_max_rad:
+                found.append((i, t_turn))
+        s = _step(p, s, u, tau)
+    return found
+
+
+def _hold_at(
+    signs: list[int],
+    holds: list[int],
+    taus: list[float],
+    turns: list[tuple[int, float]],
+    step_s: float,
+) -> Guess:
+    """The guess with a hold put in at each turn (arc, time into it): the arc is split there,
+    braking onto the limit before the hold and leaving it after."""
+    at = dict(turns)
+    out_s: list[int] = []
+    out_h: list[int] = []
+    out_t: list[float] = []
+    for i, (sign, hold, tau) in enumerate(zip(signs, holds, taus, strict=True)):
+        if i in at:
+            t_turn = at[i]
+            out_s += [sign, 0, sign]
+            out_h += [0, -sign, 0]
+            out_t += [t_turn, step_s, max(tau - t_turn, step_s)]
+        else:
+            out_s.append(sign)
+            out_h.append(hold)
+            out_t.append(tau)
+    return out_s, out_h, out_t
 
 
 def _alternating(first: int, count: int) -> list[int]:

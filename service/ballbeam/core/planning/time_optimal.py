@@ -217,21 +217,38 @@ def _fixed_inputs(ref: _Reference, n: int, step_s: float) -> np.ndarray:
     return np.asarray(ref.input_v[idx])
 
 
-def _whole(level: _Grid) -> _Attempt:
+class _Budget:
+    """The LPs one plan may solve: past ``limit`` (None: no limit) the plan is given up with
+    PlanningError rather than searched on (a caller in a loop needs an answer in bounded time)."""
+
+    def __init__(self, limit: int | None) -> None:
+        self.limit = limit
+        self.used = 0
+
+    def solve(self, level: _Grid, n: int, free: np.ndarray, fixed_v: np.ndarray) -> _Solve:
+        if self.limit is not None and self.used >= self.limit:
+            raise PlanningError(
+                f"no plan within {self.limit} LP solves on the {level.step_s * 1e3:g} ms grid"
+            )
+        self.used += 1
+        return _solve_steps(level, n, free, fixed_v)
+
+
+def _whole(level: _Grid, budget: _Budget) -> _Attempt:
     """Attempts on the whole problem: every input free."""
-    return lambda n: _solve_steps(level, n, np.ones(n, bool), np.zeros(n))
+    return lambda n: budget.solve(level, n, np.ones(n, bool), np.zeros(n))
 
 
-def _windowed(level: _Grid, ref: _Reference, window_s: float) -> _Attempt:
+def _windowed(level: _Grid, ref: _Reference, window_s: float, budget: _Budget) -> _Attempt:
     """Attempts with the inputs of ``ref`` except within ``window_s`` of its switches."""
     h = level.step_s
-    return lambda n: _solve_steps(
+    return lambda n: budget.solve(
         level, n, _window_mask(ref, n, h, window_s), _fixed_inputs(ref, n, h)
     )
 
 
 def _first_guess(
-    grid: _Grid, m: int, t_lo: float, n_max: int, delta: float
+    grid: _Grid, m: int, t_lo: float, n_max: int, delta: float, budget: _Budget
 ) -> tuple[int, float | None]:
     """Where to start the whole problem on the coarsest grid (step m·h), and the miss's slope.
 
@@ -246,14 +263,18 @@ def _first_guess(
     if pre is None:
         return start, None
     found = _min_steps(
-        _whole(pre), math.floor(t_lo / pre.step_s), None, -(-n_max // (2 * m)) + 1, confirm=False
+        _whole(pre, budget),
+        math.floor(t_lo / pre.step_s),
+        None,
+        -(-n_max // (2 * m)) + 1,
+        confirm=False,
     )
     if found is None or not math.isfinite(found.slope) or not math.isfinite(found.below.miss):
         return start, None
     return max(start, math.floor(2.0 * found.root)), found.slope
 
 
-def _search(grid: _Grid, t_lo: float, n_max: int) -> _Found | None:
+def _search(grid: _Grid, t_lo: float, n_max: int, budget: _Budget) -> _Found | None:
     """The minimal step count: the whole problem on the coarsest grid, then each finer grid
     around the coarser shape (see the module notes)."""
     h = grid.step_s
@@ -269,32 +290,32 @@ def _search(grid: _Grid, t_lo: float, n_max: int) -> _Found | None:
         if m > 1:
             coarse = _make_grid(grid.p, grid.x0, grid.voltage_v, grid.theta_max_rad, m * h, delta)
             if coarse is None:
-                return _min_steps(_whole(grid), math.floor(t_lo / h), None, n_max)
+                return _min_steps(_whole(grid, budget), math.floor(t_lo / h), None, n_max)
             level = coarse
         if found is None or prev is None:
             # a coarse grid may need a step more than the fine horizon allows
             top_max = -(-n_max // m) + (m > 1)
-            start, slope = _first_guess(grid, m, t_lo, n_max, delta)
-            found = _min_steps(_whole(level), start, slope, top_max, confirm=m == 1)
+            start, slope = _first_guess(grid, m, t_lo, n_max, delta, budget)
+            found = _min_steps(_whole(level, budget), start, slope, top_max, confirm=m == 1)
             if found is None:
                 return None  # nothing within the horizon even on the coarse grid
         else:
             ratio = prev.step_s / level.step_s
             if not math.isfinite(found.below.miss):  # no closest approach to refine: no shortcut
-                return _min_steps(_whole(grid), math.floor(t_lo / h), None, n_max)
+                return _min_steps(_whole(grid, budget), math.floor(t_lo / h), None, n_max)
             ref = _reference(prev, found.below)
             start = math.floor(found.root * ratio)
             # the terminal rows are scaled by one step's effect (∝ step): the slope carries over
             refined = None
             for width in (_WINDOW, 4.0 * _WINDOW):
-                attempt = _windowed(level, ref, width * prev.step_s)
+                attempt = _windowed(level, ref, width * prev.step_s, budget)
                 refined = _min_steps(
                     attempt, start, found.slope, -(-n_max // m) + (m > 1), confirm=m == 1
                 )
                 if refined is not None:
                     break
             if refined is None:  # unusual start: no shortcut
-                return _min_steps(_whole(grid), math.floor(t_lo / h), None, n_max)
+                return _min_steps(_whole(grid, budget), math.floor(t_lo / h), None, n_max)
             found = refined
         prev = level
     return found
@@ -361,6 +382,7 @@ def plan_time_optimal(
     step_s: float = 1e-3,
     max_duration_s: float = 20.0,
     verify_minimal: bool = False,
+    max_lp_solves: int | None = None,
 ) -> TimeOptimalPlan:
     """The minimum-time path from ``initial_state`` (θ, θ̇, ẋ, x) to rest at the origin.
 
@@ -369,10 +391,11 @@ def plan_time_optimal(
     ±``theta_max_rad`` at all times. ``verify_minimal`` re-solves the whole fine problem at
     N − 1 steps (one LP over all the inputs, slower than the whole windowed search) and
     continues on it should that be feasible; without it, minimality rests on the windowed
-    search.
+    search. ``max_lp_solves`` bounds the LPs the search may solve (None: unbounded).
 
     Raises PlanningError when the start is beyond the angle limit, moves too fast to be
-    stopped before it, or needs longer than ``max_duration_s``; ConfigError for bad settings.
+    stopped before it, needs longer than ``max_duration_s`` or more than ``max_lp_solves``
+    LPs; ConfigError for bad settings.
     """
     p = _params(model)
     x0 = np.asarray(initial_state, dtype=float).reshape(4)
@@ -410,7 +433,8 @@ def plan_time_optimal(
         _ball_only_time_s(x0[3], x0[2], abs(p.gamma) * theta_max_rad),
         abs(x0[0]) / max(abs(x0[1]), U / p.beta),
     )
-    found = _search(grid, t_lo, n_max)
+    budget = _Budget(max_lp_solves)
+    found = _search(grid, t_lo, n_max, budget)
     if found is None or found.solution is None:  # (the finest grid always confirms its count)
         raise PlanningError(
             f"no path to rest within {max_duration_s} s from {np.round(x0, 4).tolist()} "
@@ -426,7 +450,7 @@ def plan_time_optimal(
             grid, n - 1, np.ones(n - 1, bool), np.zeros(n - 1), exact_end=True, method="highs-ipm"
         )
         if whole.feasible:  # the windows missed a faster path: search the whole problem below n
-            better = _min_steps(_whole(grid), math.floor(t_lo / step_s), None, n - 1)
+            better = _min_steps(_whole(grid, budget), math.floor(t_lo / step_s), None, n - 1)
             if better is not None and better.solution is not None:
                 n, sol = better.n, better.solution
         verified = True
