@@ -53,6 +53,7 @@ def test_the_default_kind_is_the_tracker() -> None:
     [
         (("controller.kind='mpc'",), "'tracker' or 'replanning'"),
         ((*REPLANNING, "task.sine={amplitude_m=0.04, period_s=10.0}"), "no sine tracking"),
+        ((*REPLANNING, "run.mode='realtime'"), "lock-step only"),
     ],
 )
 def test_a_kind_the_run_cannot_have_exits_2_in_one_line_before_anything_starts(

@@ -5,7 +5,6 @@ going, a planner that never outlives its daemon, and a real-time run."""
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import os
 import secrets
@@ -32,7 +31,7 @@ from ballbeam.runtime.planner import PlannerProcess
 from ballbeam.runtime.stop import StopFlag
 from ballbeam_emulator.node import PlantEmulator
 
-from .conftest import PAPER, REPO, ballbeam, ballbeam_argv
+from .conftest import PAPER, REPO, ballbeam_argv
 
 REPLANNING = ("controller.kind='replanning'",)
 REST_BAND_M = 5e-4
@@ -185,42 +184,3 @@ def test_a_planner_that_fails_or_dies_leaves_the_law_on_its_plan_and_the_run_goi
     reference_input = np.asarray(run_log.topics["/reference"].values["input_v"])
     assert np.count_nonzero(reference_input[min(t.cycle for t in nones):]) > 100
     assert replay.verify(run_log).ok
-
-
-# ---- real time -----------------------------------------------------------------------------
-
-
-def _realtime_run(tmp_path: Path, *overrides: str) -> Path:
-    log_dir = tmp_path / secrets.token_hex(3)
-    result = ballbeam("run", str(PAPER), "--set", f"run.log_dir='{log_dir}'",
-                      "--set", "run.mode='realtime'", "--set", "run.duration_s=4.0",
-                      *[item for o in overrides for item in ("--set", o)], "--json",
-                      timeout_s=300)
-    assert result.returncode == 0, result.stderr
-    return Path(json.loads(result.stdout)["log_path"])
-
-
-@pytest.mark.realtime
-def test_a_real_time_replanning_run_rests_never_waits_for_a_plan_and_replays(
-    tmp_path: Path,
-) -> None:
-    tracker = read_log(_realtime_run(tmp_path))
-    path = _realtime_run(tmp_path, *REPLANNING)
-    run_log = read_log(path)
-    summary = run_log.metadata["summary"]
-    assert summary["end_reason"] == "completed"
-    # at rest in the band at the end, in truth
-    truth = run_log.topics["/truth"].values
-    assert abs(float(np.asarray(truth["ball_position_m"])[-1])) <= REST_BAND_M
-    assert abs(float(np.asarray(truth["theta_rad"])[-1])) <= REST_BAND_RAD
-    # no cycle waited for a plan: skipped periods at the level of the tracker's run here
-    skipped = int(np.sum(run_log.topics["/timing"].values["skipped"]))
-    skipped_tracker = int(np.sum(tracker.topics["/timing"].values["skipped"]))
-    assert skipped <= 2 * skipped_tracker + 20, (skipped, skipped_tracker)
-    # answers taken at least the delay after their request (the first, before the run)
-    delay = load_config(PAPER).controller.plan_delay_cycles
-    taken = list(recorded_plans(run_log).values())
-    assert len([t for t in taken if t.plan is not None]) > 10
-    assert all(t.cycle >= t.request_cycle + delay for t in taken if t.cycle > 0)
-    verify = ballbeam("replay", str(path), "--verify", "--json")
-    assert verify.returncode == 0, verify.stderr

@@ -832,6 +832,12 @@ class Config(_Section):
     def _controller_fits_the_run(self) -> None:
         if self.controller.kind != "replanning":
             return
+        if self.run.mode == "realtime":
+            raise ValueError(
+                'controller.kind = "replanning" runs in lock-step only (run.mode = "lockstep"): '
+                "its plans are solved off the cycle, but its own cycle (a 5-state filter in "
+                "numpy) does not yet fit a 1 ms period on wall time"
+            )
         if self.task.sine is not None:
             raise ValueError(
                 'controller.kind = "replanning" brings the ball to targets (task.target_m, '
