@@ -3,19 +3,27 @@ guest's memory first (each file over 9p on the emulated CPU costs milliseconds a
 every process start reads about a thousand of them).
 
 Run as ``sitecustomize`` (``PYTHONPATH`` holding this directory and ``VCAN_STAGE_OUT`` set):
-each process then appends, at exit, the files of its loaded modules and shared libraries.
+each process then appends, at exit, the files of its loaded modules and shared libraries;
+without ``VCAN_STAGE_OUT`` (in the guest) it finds what the copies lack on the host's files.
 Run as ``python .ci/vcan-stage.py OUT TREE... -- LIST...``: merges the lists, and every file
-under each TREE (the project's import roots), into OUT (the files to copy) and prints the
+under each TREE (the project's import roots), into OUT (the files to copy) and OUT.links (the
+large ones, to link to), and prints the
 ``PYTHONPATH`` that puts the copies first, in the processes' own order.
 """
 
 from __future__ import annotations
 
 import atexit
+import importlib.abc
+import importlib.machinery
 import os
 import sys
+from collections.abc import Sequence
+from importlib.machinery import ModuleSpec
+from types import ModuleType
 
 STAGE = "/tmp/stage"
+LINK_FROM_BYTES = 256 << 10
 
 
 def _loaded_files() -> set[str]:
@@ -65,10 +73,29 @@ def _merge(out: str, listings: list[str], whole: list[str]) -> str:
         # through a link: copied as the files they are)
         for folder, _, names in os.walk(root, followlinks=True):
             staged.update(os.path.join(folder, name) for name in names)
-    with open(out, "w") as listing:
-        listing.writelines(f"{path.lstrip('/')}\n" for path in sorted(staged))
+    # Large files (shared libraries) are linked to, not copied: a process maps only the pages
+    # it touches, and copying their every byte over 9p cost more than it saved.
+    small = sorted(f for f in staged if os.path.getsize(f) < LINK_FROM_BYTES)
+    large = sorted(f for f in staged if os.path.getsize(f) >= LINK_FROM_BYTES)
+    for name, paths in ((out, small), (f"{out}.links", large)):
+        with open(name, "w") as listing:
+            listing.writelines(f"{path.lstrip('/')}\n" for path in paths)
     # The project's roots first: the editable install finds them after the path entries.
     return ":".join(STAGE + entry for entry in [*roots, *entries])
+
+
+class FromHost(importlib.abc.MetaPathFinder):
+    """In the guest (``sitecustomize`` there): a module of a staged package that the list
+    left out (``encodings.cp1252``, say, which the host's run never loaded) is found where the
+    host has it, as it would be without the copies."""
+
+    def find_spec(
+        self, fullname: str, path: Sequence[str] | None, target: ModuleType | None = None
+    ) -> ModuleSpec | None:
+        originals = [entry[len(STAGE):] for entry in path or () if entry.startswith(STAGE + "/")]
+        if not originals:
+            return None
+        return importlib.machinery.PathFinder.find_spec(fullname, originals, target)
 
 
 if __name__ == "__main__":
@@ -77,3 +104,5 @@ if __name__ == "__main__":
     print(_merge(sys.argv[1], sys.argv[split + 1:], sys.argv[2:split]))
 elif os.environ.get("VCAN_STAGE_OUT"):
     atexit.register(_dump)
+else:
+    sys.meta_path.append(FromHost())
