@@ -60,7 +60,6 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.linalg
-import scipy.stats
 
 from ballbeam.core.guard import AngleGuard, guarded_voltage, make_angle_guard, make_soft_cap
 from ballbeam.core.model import BALL_POSITION, THETA, LinearModel, as_row4
@@ -94,7 +93,7 @@ _C = np.array([[57.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 100.0]])
 # deviations of χ² (√(2·dof)).
 _OUTLIER_SIGMAS = 6.0
 # ... the same tail, for the noise estimate's F-test
-_OUTLIER_TAIL = float(scipy.stats.norm.sf(_OUTLIER_SIGMAS))
+_OUTLIER_TAIL = 0.5 * math.erfc(_OUTLIER_SIGMAS / math.sqrt(2.0))  # the normal's upper tail
 # Singular values below this fraction of the largest: columns that coincide (counted once).
 _RANK_TOLERANCE = 1e-9
 # The re-shaping solve (Gauss-Newton on exact Jacobians): its stopping test on residuals in
@@ -246,8 +245,12 @@ class NoiseEstimate:
     def add(self, sum_squares_m2: float, dof: int) -> bool:
         if dof <= 0:
             return False
+        # (imported here: scipy.stats would load with this module into every daemon, whichever
+        # law it runs)
+        from scipy.stats import f as f_distribution
+
         ratio = sum_squares_m2 / dof / self.variance_m2
-        if ratio > scipy.stats.f.isf(_OUTLIER_TAIL, dof, self.dof):
+        if ratio > f_distribution.isf(_OUTLIER_TAIL, dof, self.dof):
             self.rejected += 1
             return False
         self.sum_squares_m2 += sum_squares_m2
