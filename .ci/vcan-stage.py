@@ -5,9 +5,8 @@ every process start reads about a thousand of them).
 Run as ``sitecustomize`` (``PYTHONPATH`` holding this directory and ``VCAN_STAGE_OUT`` set):
 each process then appends, at exit, the files of its loaded modules and shared libraries;
 without ``VCAN_STAGE_OUT`` (in the guest) it finds what the copies lack on the host's files.
-Run as ``python .ci/vcan-stage.py OUT TREE... -- LIST...``: merges the lists, and every file
-under each TREE (the project's import roots), into OUT (the files to copy) and OUT.links (the
-large ones, to link to), and prints the
+Run as ``python .ci/vcan-stage.py OUT TREE... -- LIST...``: puts the files of the lists, and
+every file under each TREE (the project's import roots), in the archive OUT, and prints the
 ``PYTHONPATH`` that puts the copies first, in the processes' own order.
 """
 
@@ -18,12 +17,13 @@ import importlib.abc
 import importlib.machinery
 import os
 import sys
+import tarfile
 from collections.abc import Sequence
 from importlib.machinery import ModuleSpec
 from types import ModuleType
 
 STAGE = "/tmp/stage"
-LINK_FROM_BYTES = 256 << 10
+LARGE_BYTES = 2 << 20
 
 
 def _loaded_files() -> set[str]:
@@ -73,13 +73,18 @@ def _merge(out: str, listings: list[str], whole: list[str]) -> str:
         # through a link: copied as the files they are)
         for folder, _, names in os.walk(root, followlinks=True):
             staged.update(os.path.join(folder, name) for name in names)
-    # Large files (shared libraries) are linked to, not copied: a process maps only the pages
-    # it touches, and copying their every byte over 9p cost more than it saved.
-    small = sorted(f for f in staged if os.path.getsize(f) < LINK_FROM_BYTES)
-    large = sorted(f for f in staged if os.path.getsize(f) >= LINK_FROM_BYTES)
-    for name, paths in ((out, small), (f"{out}.links", large)):
-        with open(name, "w") as listing:
-            listing.writelines(f"{path.lstrip('/')}\n" for path in paths)
+    # One archive, read in one stream by the guest: over 9p each file opened costs more than
+    # its bytes do. The few large files (shared libraries: BLAS, C extensions) go in as links
+    # to the host's: a process maps only the pages it touches.
+    with tarfile.open(out, "w", dereference=True) as archive:
+        for path in sorted(staged):
+            name = path.lstrip("/")
+            if os.path.getsize(path) < LARGE_BYTES:
+                archive.add(path, arcname=name, recursive=False)
+            else:
+                link = tarfile.TarInfo(name)
+                link.type, link.linkname = tarfile.SYMTYPE, os.path.realpath(path)
+                archive.addfile(link)
     # The project's roots first: the editable install finds them after the path entries.
     return ":".join(STAGE + entry for entry in [*roots, *entries])
 
