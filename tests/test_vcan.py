@@ -131,15 +131,17 @@ def _emulator(summary: dict[str, object]) -> dict[str, int]:
     return {str(key): int(value) for key, value in counters.items()}
 
 
-def _check_slow_machine_figures(summary: dict[str, object], processes_started: int) -> None:
+def _check_slow_machine_figures(summary: dict[str, object]) -> None:
     """Lock-step on a slow machine. Once the daemon answers, the emulator sends a sample again
     only when an answer takes far longer than the round trips before it (its wait is
     measured, plant.lockstep_resend_ms a floor under it), and its watchdog only trips after
     such a wait went unanswered too: a clean run on a machine of its own has neither
-    (test_lockstep_answers.py). In the VM on a loaded host the emulated CPUs stop for over a
-    second at times (frames then arrive out of the 1 s freshness window), and a process
-    started during the run (each cansend here) does the same: measured 3-4 resends and 1-5
-    trips in 400 cycles, bounded at one each per such process plus 2 % of the cycles.
+    (test_lockstep_answers.py). In the VM the two runs share two emulated CPUs, each with the
+    other's three processes and the cansends, and on a loaded host those CPUs stop for over
+    a second at times: measured 4-81 resends and 1-24 trips in 400 cycles (docs/decisions.md).
+    Neither changes what a lock-step run computes (the two runs command alike bit for bit, and
+    like the host's own run over udp_multicast). The bound, a quarter of the cycles each,
+    catches a broken wait (a resend every cycle), not the VM's speed.
     (Before the daemon's first answer the emulator repeats its first sample, backing off;
     its own resend count includes those, which the daemon, not yet listening, never hears.)"""
     emulator = _emulator(summary)
@@ -147,9 +149,8 @@ def _check_slow_machine_figures(summary: dict[str, object], processes_started: i
     cycles = int(str(summary["cycles"]))
     print(f"{summary['bus']}: {cycles} cycles, {meta['sensor_frames_repeated']} samples "
           f"resent while the daemon listened, {emulator['resends']} resends in all, "
-          f"{emulator['watchdog_trips']} watchdog trips, {processes_started} processes "
-          f"started meanwhile, {summary['wall_time_s']:.0f} s")
-    bound = processes_started + cycles // 50
+          f"{emulator['watchdog_trips']} watchdog trips, {summary['wall_time_s']:.0f} s")
+    bound = cycles // 4
     assert emulator["watchdog_trips"] <= bound, emulator
     assert int(meta["sensor_frames_repeated"]) <= bound, meta
 
@@ -226,11 +227,7 @@ class VcanRuns:
     classic_wrong_crc: bytes
 
 
-# What each run has started beside it while it goes (processes stall the VM's emulated CPUs):
-# the other run's three (launcher, daemon, emulator) and every cansend and candump.
-FD_CANSENDS, CLASSIC_CANSENDS = 9, 1
-STARTED_BESIDE_FD = FD_CANSENDS + 3 + CLASSIC_CANSENDS
-STARTED_BESIDE_CLASSIC = CLASSIC_CANSENDS + 3 + FD_CANSENDS
+FD_CANSENDS = 9
 
 
 @pytest.fixture(scope="module")
@@ -286,7 +283,7 @@ def test_auto_runs_authenticated_on_the_fd_vcan_and_says_so(
     authenticated = received["dlc"] != 8  # 8: cansend's classic frames
     assert set(np.unique(received["dlc"][authenticated])) == {24}  # SecOC, CAN FD lengths
     assert np.count_nonzero(~authenticated) == 3
-    _check_slow_machine_figures(fd_run, processes_started=STARTED_BESIDE_FD)
+    _check_slow_machine_figures(fd_run)
 
 
 @pytest.mark.vcan
@@ -316,7 +313,7 @@ def test_classic_vcan_carries_the_e2e_contract_that_candump_and_cantools_read(
     run_log = read_log(Path(str(summary["log_path"])))
     assert run_log.metadata["run"]["authenticated"] == "false"
     assert int(run_log.metadata["summary"]["rejected_crc"]) == 1
-    _check_slow_machine_figures(summary, processes_started=STARTED_BESIDE_CLASSIC)
+    _check_slow_machine_figures(summary)
     logged_v = _commands(summary)
     database = cantools.database.load_file(str(FrameContract.load().path))
     ours = [(frame_id, data) for frame_id, data in frames if data != wrong_crc]
