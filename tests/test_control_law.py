@@ -260,9 +260,12 @@ def test_plans_adopted_while_coasting_come_with_the_next_output_at_their_own_cyc
     delay = config.controller.plan_delay_cycles
     outputs = [law.step(reading) for reading in readings[: delay + 1]]
     taken = [t for output in outputs for t in output.adopted_plans]
-    # the first plan (asked for from the start, before the run) at the first cycle; the
-    # re-plan asked for then, the delay later
-    assert [(t.cycle, t.request_cycle) for t in taken] == [(0, 0), (delay, 0)]
+    # the design it starts with and the first plan (asked for from the start, before the
+    # run) at the first cycle; the re-plan asked for then, the delay later
+    assert [(t.cycle, t.request_cycle, t.design) for t in taken] == [
+        (0, 0, True), (0, 0, False), (delay, 0, False)
+    ]
+    assert taken[0].design_made is law.controller.design
     assert outputs[0].reference_input_v != 0.0
     for reading in readings[delay + 1 : 100]:
         law.step(reading)
