@@ -90,6 +90,34 @@ def test_a_plan_round_trips_through_its_json_message_to_the_bit() -> None:
         assert plan_from_message(json.loads(json.dumps(plan_message(taken)))) == taken
 
 
+def test_a_design_taken_round_trips_through_its_message_to_the_bit() -> None:
+    """A re-design's message carries the design whole: every float and array of it, its
+    identified model and guard, come back with the same bits; a part that is not one of a
+    design's is refused."""
+    from ballbeam.core.replanning import ReplanningController, Settings
+
+    design = ReplanningController(Settings(), np.array([0.5, 0.0, 0.0, 0.1])).design
+    message = json.loads(json.dumps(plan_message(PlanTaken(200, 198, None, True, design))))
+    back = plan_from_message(message).design_made
+
+    def leaves(value: object) -> list[bytes]:
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
+            return [b for f in dataclasses.fields(value) for b in leaves(getattr(value, f.name))]
+        if isinstance(value, tuple):
+            return [b for item in value for b in leaves(item)]
+        if isinstance(value, np.ndarray):
+            return [repr(value.shape).encode(), value.astype(np.float64).tobytes()]
+        if isinstance(value, float):  # (numpy's float64 too: the bits are what count)
+            return [np.float64(value).tobytes()]
+        return [repr(value).encode()]
+
+    assert type(back) is type(design) and leaves(back) == leaves(design)
+    assert back.guard == design.guard and len(leaves(design)) > 1000
+    message["made"]["fields"]["guard"]["type"] = "os.system"
+    with pytest.raises(ValueError, match="not a part of a design"):
+        plan_from_message(message)
+
+
 # ---- offline ---------------------------------------------------------------------------------
 
 
@@ -260,9 +288,12 @@ def test_plans_adopted_while_coasting_come_with_the_next_output_at_their_own_cyc
     delay = config.controller.plan_delay_cycles
     outputs = [law.step(reading) for reading in readings[: delay + 1]]
     taken = [t for output in outputs for t in output.adopted_plans]
-    # the first plan (asked for from the start, before the run) at the first cycle; the
-    # re-plan asked for then, the delay later
-    assert [(t.cycle, t.request_cycle) for t in taken] == [(0, 0), (delay, 0)]
+    # the design it starts with and the first plan (asked for from the start, before the
+    # run) at the first cycle; the re-plan asked for then, the delay later
+    assert [(t.cycle, t.request_cycle, t.design) for t in taken] == [
+        (0, 0, True), (0, 0, False), (delay, 0, False)
+    ]
+    assert taken[0].design_made is law.controller.design
     assert outputs[0].reference_input_v != 0.0
     for reading in readings[delay + 1 : 100]:
         law.step(reading)

@@ -176,7 +176,7 @@ def test_a_planner_that_fails_or_dies_leaves_the_law_on_its_plan_and_the_run_goi
     assert len(run_log.topics["/command"].values["voltage_v"]) >= 600  # every cycle ran
     faults = [m["kind"] for m in run_log.json_topics["/faults"].messages]
     assert faults == [fault]  # once, not a flood
-    taken = sorted(recorded_plans(run_log).values())
+    taken = sorted(recorded_plans(run_log).values(), key=lambda t: (t.cycle, t.design))
     plans = [t for t in taken if t.plan is not None]
     nones = [t for t in taken if t.plan is None and not t.design]
     assert plans and nones and max(t.cycle for t in plans) < min(t.cycle for t in nones)

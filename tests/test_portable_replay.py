@@ -228,3 +228,64 @@ def test_a_real_time_design_records_its_lateness_look_ahead() -> None:
     older = io.BytesIO()
     np.savez_compressed(older, **arrays)
     assert design_record.decode_design(older.getvalue(), "older").lookahead_periods == 0
+
+
+# -- the re-planning law, across BLAS kernels ----------------------------------------------
+
+# OpenBLAS kernels an x86-64 CPU without AVX-512 can run, each rounding some products its own way
+REPLANNING_KERNELS = ("Haswell", "Prescott", "Nehalem", "Sandybridge", "Zen", "SkylakeX")
+# Products of the sizes the re-planning law's filter and design use, through numpy and LAPACK.
+NUMPY_PROBE = """
+import hashlib, numpy as np
+rng = np.random.default_rng(1)
+F, P = rng.normal(size=(5, 5)), rng.normal(size=(5, 5))
+P = P @ P.T
+out = []
+for _ in range(50):
+    P = F @ P @ F.T / np.abs(P).max()
+    out.append(np.linalg.solve(P + np.eye(5), F))
+print(hashlib.sha1(np.array(out).tobytes()).hexdigest())
+"""
+
+
+def numpy_bits(kernel: str) -> str | None:
+    """A digest of numpy's small products under ``kernel`` (None: this CPU cannot run it)."""
+    probe = subprocess.run(
+        [sys.executable, "-c", NUMPY_PROBE], env=kernel_env(kernel), capture_output=True,
+        text=True, timeout=60, check=False,
+    )
+    return probe.stdout.strip() if probe.returncode == 0 else None
+
+
+@pytest.fixture(scope="module")
+def two_kernels() -> tuple[str, str]:
+    """Two kernels this CPU runs whose numpy products differ in their bits."""
+    runnable = [(kernel, bits) for kernel in REPLANNING_KERNELS if (bits := numpy_bits(kernel))]
+    for kernel, bits in runnable[1:]:
+        if bits != runnable[0][1]:
+            return runnable[0][0], kernel
+    pytest.skip(f"the kernels this CPU runs ({[k for k, _ in runnable]}) round numpy alike")
+
+
+@pytest.mark.bus
+def test_a_replanning_log_verifies_bit_for_bit_under_kernels_that_round_numpy_differently(
+    two_kernels: tuple[str, str], tmp_path: Path
+) -> None:
+    """Recorded in lock-step under one kernel (its designs' Riccati solutions that kernel's),
+    re-run under both: every command the same to the bit, with the designs the run took
+    injected (none solved again) and the law's cycle in plain floats."""
+    recorded_under, other = two_kernels
+    completed = subprocess.run(
+        ballbeam_argv(
+            "run", "--set", "controller.kind='replanning'", "--set", "run.duration_s=0.6",
+            "--set", f"run.log_dir='{tmp_path}'", "--json",
+        ),
+        env=kernel_env(recorded_under), capture_output=True, text=True, timeout=300,
+        check=False, cwd=REPO,
+    )
+    assert completed.returncode == 0, completed.stderr
+    log = Path(json.loads(completed.stdout)["log_path"])
+    for kernel in (recorded_under, other):
+        payload = verify_under(kernel, log)
+        assert payload["verify_ok"] is True, (kernel, payload)
+        assert payload["verify_cycles"] == 600, (kernel, payload)

@@ -335,7 +335,69 @@ def test_at_rest_the_filter_settles_to_the_kalman_filter_of_the_rest_noise() -> 
     prior = scipy.linalg.solve_discrete_are(d.Ad.T, _C_TEST.T, Q, d.measurement_noise)
     gain = prior @ _C_TEST.T @ np.linalg.inv(_C_TEST @ prior @ _C_TEST.T + d.measurement_noise)
     expected = (np.eye(4) - gain @ _C_TEST) @ prior
-    got = controller._covariance[:4, :4]
+    got = np.array(controller._covariance)[:4, :4]
     assert np.sqrt(np.diag(got)) == pytest.approx(np.sqrt(np.diag(expected)), rel=1e-3)
     # the threshold at rest follows: smaller than the design observer's
     assert controller._ramp_v() < 0.5 * d.ramp_v
+
+
+def _textbook_kalman_step(
+    Ad: np.ndarray, bd: np.ndarray, Q: np.ndarray, R: np.ndarray, H4: np.ndarray,
+    period_s: float, z: np.ndarray, P: np.ndarray, drive_v: float, y: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The Kalman filter's predict and update in matrix form on (θ, θ̇, ẋ, x, δγ), ẍ gaining
+    δγ·θ (its first and second integrals over the step, θ moving at its rate), δγ constant."""
+    h = period_s
+    F = np.eye(5)
+    F[:4, :4] = Ad
+    F[2, 4] = h * (z[0] + 0.5 * z[1] * h)
+    F[3, 4] = 0.5 * h * h * (z[0] + z[1] * h / 3.0)
+    B = np.append(bd, 0.0)
+    Q5 = np.zeros((5, 5))
+    Q5[:4, :4] = Q
+    H = np.hstack([H4, np.zeros((2, 1))])
+    z_prior = F @ z + B * drive_v
+    P_prior = F @ P @ F.T + Q5
+    gain = P_prior @ H.T @ np.linalg.inv(H @ P_prior @ H.T + R)
+    z_post = z_prior + gain @ (y - H @ z_prior)
+    P_post = (np.eye(5) - gain @ H) @ P_prior
+    return z_post, 0.5 * (P_post + P_post.T), P_prior
+
+
+def test_the_plain_float_filter_step_is_the_textbook_kalman_filter() -> None:
+    """``filter_step`` (tuples of floats, its own order of operations) against the matrix
+    form with numpy, on random seeded states and covariances: equal to 1e-12 of each entry's
+    scale in the step (a state's by its predicted standard deviation, a covariance's by
+    √(Pᵢᵢ Pⱼⱼ) of the predicted covariance: the update subtracts from those)."""
+    from ballbeam.core.replanning import _CycleRows, filter_step
+
+    controller = ReplanningController(Settings(), np.zeros(4))
+    d = controller.design
+    rows = _CycleRows.of(d, controller.settings.period_s).filter
+    rng = np.random.default_rng(27)
+    scales = np.array([0.3, 3.0, 0.1, 0.1, 0.05])  # θ, θ̇, ẋ, x, δγ
+    worst = 0.0
+    for _ in range(200):
+        z = rng.normal(size=5) * scales
+        root = rng.normal(size=(5, 5)) * scales[:, None] * 10.0 ** rng.uniform(-3, -1)
+        P = root @ root.T + np.diag((scales * 1e-4) ** 2)
+        P = 0.5 * (P + P.T)
+        drive_v = float(rng.uniform(-5.0, 5.0))
+        y = _C_TEST @ (z[:4] + rng.normal(size=4) * 1e-3)
+        ball_var = float(rng.uniform(0.0, 1e-4))
+        Q = d.process_noise + ball_var * d.ball_process_noise
+        want_z, want_P, prior_P = _textbook_kalman_step(
+            d.Ad, d.bd, Q, d.measurement_noise, _C_TEST, rows.period_s, z, P, drive_v, y
+        )
+        got_z, got_P = filter_step(
+            rows, tuple(z.tolist()), tuple(tuple(row) for row in P.tolist()), drive_v,
+            (float(y[0]), float(y[1])), ball_var,
+        )
+        sigma = np.sqrt(np.diag(prior_P))
+        worst = max(
+            worst,
+            float(np.max(np.abs(np.array(got_z) - want_z) / sigma)),
+            float(np.max(np.abs(np.array(got_P) - want_P) / np.outer(sigma, sigma))),
+        )
+        assert np.array(got_P).tolist() == np.array(got_P).T.tolist()  # exactly symmetric
+    assert worst <= 1e-12, worst

@@ -333,9 +333,11 @@ def command_replay(args: argparse.Namespace) -> int:
         if result.mismatch is not None:
             mismatch = result.mismatch
             summary["verify_first_mismatch_cycle"] = mismatch.cycle
-            # The re-planning law's filter goes through BLAS (docs/decisions.md, the seam).
+            # A re-planning log from before its designs were recorded on /plans re-makes
+            # them through this machine's LAPACK (docs/decisions.md, issue 27).
             kernel_note = (
-                "; this law verifies bit for bit only on the BLAS kernel it was recorded with"
+                "; a re-planning log whose /plans carry no designs verifies bit for bit only on"
+                " the BLAS kernel it was recorded with"
                 if result.design_source == "recorded plans" else ""
             )
             print(

@@ -10,7 +10,7 @@ the bit on every machine, so a recorded design replays identically wherever it i
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -381,12 +381,16 @@ def starting_state(design: ControllerDesign) -> ControllerState:
 class PlanTaken(NamedTuple):
     """A re-planning law took its planner's answer at ``cycle``: the plan (None: the planner
     had none; the law kept its plan) solved for the request of ``request_cycle``, or
-    (``design``) the re-design of the plant as identified then."""
+    (``design``) the re-design of the plant as identified then; the design the law starts
+    with is one too, taken at cycle 0 to a request of cycle 0."""
 
     cycle: int
     request_cycle: int
     plan: ArcPlan | None
     design: bool = False
+    # (a re-design) the design taken, recorded so a replay uses it rather than solving its
+    # Riccati equations again through this machine's LAPACK; None in a log from before
+    design_made: Any = None
 
 
 class CycleOutput(NamedTuple):

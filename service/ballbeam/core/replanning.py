@@ -55,6 +55,7 @@ Each 1 ms cycle:
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass, field, replace
 
@@ -77,7 +78,7 @@ from ballbeam.core.planning.arcs import (
     plan_arcs,
     replan,
 )
-from ballbeam.core.planning.lag_hold import _Params, _propagate
+from ballbeam.core.planning.lag_hold import _Params
 from ballbeam.core.plant import (
     EmulatedPlant,
     PlantPhysics,
@@ -625,6 +626,156 @@ def _design(identified: Identified, s: Settings, position_noise_m: float) -> _De
     )
 
 
+# --- the cycle's arithmetic in plain floats ------------------------------------------------
+# Every product the law makes each cycle is written out over Python floats in a fixed order
+# (no numpy, no BLAS): a BLAS kernel picks its own summation order and fused multiply-adds,
+# so a numpy product of tiny matrices differs in its last bits between machines, and a
+# replay would not be bit for bit; and a numpy call on a 5 × 5 matrix costs its overhead,
+# not its arithmetic.
+
+Vec = tuple[float, ...]
+Mat = tuple[tuple[float, ...], ...]
+
+
+def _vec(values: np.ndarray) -> Vec:
+    return tuple(float(v) for v in np.asarray(values, dtype=float).ravel())
+
+
+def _mat(values: np.ndarray) -> Mat:
+    return tuple(_vec(row) for row in np.asarray(values, dtype=float))
+
+
+def _dot4(a: Vec, b: Vec) -> float:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2] + a[3] * b[3]
+
+
+def _dot5(a: Vec, b: Vec) -> float:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2] + a[3] * b[3] + a[4] * b[4]
+
+
+def _quadratic4(m: Mat, e: Vec) -> float:
+    """eᵀ M e, M (4, 4): (M e) first, then e · (M e)."""
+    return _dot4(e, tuple(_dot4(row, e) for row in m))
+
+
+def _quadratic2(m: Mat, e: Vec) -> float:
+    return e[0] * (m[0][0] * e[0] + m[0][1] * e[1]) + e[1] * (m[1][0] * e[0] + m[1][1] * e[1])
+
+
+@dataclass(frozen=True)
+class FilterRows:
+    """What one filter step needs of a design, as tuples of floats (made once a design)."""
+
+    period_s: float
+    Ad: Mat  # (4, 4)
+    bd: Vec  # (4,)
+    process_noise: Mat  # (4, 4)
+    ball_process_noise: Mat  # (4, 4): of a unit held ball acceleration
+    measurement_noise: Mat  # (2, 2): of (57 θ, 100 x)
+    angle_gain: float  # the measurement's rows: (angle_gain·θ, position_gain·x)
+    position_gain: float
+
+
+def filter_step(
+    rows: FilterRows,
+    state: Vec,
+    covariance: Mat,
+    drive_v: float,
+    measured: tuple[float, float],
+    ball_noise_var: float,
+) -> tuple[Vec, Mat]:
+    """One Kalman step (predict with the drive held over the period, then correct with the
+    measurement ``measured`` = (angle_gain·θ, position_gain·x)) on (θ, θ̇, ẋ, x, δγ), where
+    ẍ = (γ̂ + δγ)·θ and δγ is constant; ``ball_noise_var`` scales the ball's process noise.
+    Returns the state (5,) and its covariance (5, 5)."""
+    h = rows.period_s
+    theta, rate = state[0], state[1]
+    a = rows.Ad
+    # δγ·∫θ and δγ·∫∫θ over the step, θ moving at its rate (a fast stroke moves θ by a
+    # percent of itself in one step)
+    F = (
+        (*a[0], 0.0),
+        (*a[1], 0.0),
+        (*a[2], h * (theta + 0.5 * rate * h)),
+        (*a[3], 0.5 * h * h * (theta + rate * h / 3.0)),
+        (0.0, 0.0, 0.0, 0.0, 1.0),
+    )
+    bd = rows.bd
+    prior = (*(_dot5(F[i], state) + bd[i] * drive_v for i in range(4)), state[4])
+    # F P Fᵀ + Q: P is symmetric (kept so), so P's rows are its columns; F's last row
+    # picks δγ, so F P's is P's; the product's upper triangle is mirrored
+    FP = (*(tuple(_dot5(row, column) for column in covariance) for row in F[:4]), covariance[4])
+    q, qb = rows.process_noise, rows.ball_process_noise
+    upper = [
+        [
+            _dot5(FP[i], F[j]) + q[i][j] + ball_noise_var * qb[i][j] if j < 4 else FP[i][4]
+            for j in range(i, 5)
+        ]
+        for i in range(5)
+    ]
+    P = tuple(
+        tuple(upper[i][j - i] if j >= i else upper[j][i - j] for j in range(5)) for i in range(5)
+    )
+    ga, gp = rows.angle_gain, rows.position_gain
+    hp0 = tuple(ga * v for v in P[0])  # H P: H's rows pick θ and x
+    hp1 = tuple(gp * v for v in P[3])
+    r = rows.measurement_noise
+    s00, s01 = hp0[0] * ga + r[0][0], hp0[3] * gp + r[0][1]
+    s10, s11 = hp1[0] * ga + r[1][0], hp1[3] * gp + r[1][1]
+    det = s00 * s11 - s01 * s10
+    # the gain (S⁻¹ H P)ᵀ, S (2, 2) inverted in closed form
+    gain = tuple(
+        ((s11 * hp0[i] - s01 * hp1[i]) / det, (s00 * hp1[i] - s10 * hp0[i]) / det)
+        for i in range(5)
+    )
+    r0 = measured[0] - ga * prior[0]
+    r1 = measured[1] - gp * prior[3]
+    new_state = tuple(prior[i] + (gain[i][0] * r0 + gain[i][1] * r1) for i in range(5))
+    # P − G H P, symmetrised: ½ of it and its transpose, entry by entry
+    updated = [[0.0] * 5 for _ in range(5)]
+    for i in range(5):
+        gi0, gi1 = gain[i]
+        row = P[i]
+        for j in range(i, 5):
+            gj0, gj1 = gain[j]
+            value = 0.5 * (
+                (row[j] - (gi0 * hp0[j] + gi1 * hp1[j])) + (P[j][i] - (gj0 * hp0[i] + gj1 * hp1[i]))
+            )
+            updated[i][j] = updated[j][i] = value
+    symmetric = tuple(tuple(row) for row in updated)
+    return new_state, symmetric
+
+
+@dataclass(frozen=True)
+class _CycleRows:
+    """A design's matrices the cycle uses, as tuples of floats (made once a design)."""
+
+    design: _Design
+    filter: FilterRows
+    L: Mat  # (4, 2): the fixed-gain observer's (without estimate_gamma)
+    K: Vec
+    K_terminal: Vec
+    P_terminal: Mat
+    estimate_covariance: Mat
+    ball_information: Mat  # (2, 2)
+
+    @classmethod
+    def of(cls, d: _Design, period_s: float) -> _CycleRows:
+        return cls(
+            design=d,
+            filter=FilterRows(
+                period_s=period_s, Ad=_mat(d.Ad), bd=_vec(d.bd),
+                process_noise=_mat(d.process_noise),
+                ball_process_noise=_mat(d.ball_process_noise),
+                measurement_noise=_mat(d.measurement_noise),
+                angle_gain=float(_C[0, THETA]), position_gain=float(_C[1, BALL_POSITION]),
+            ),
+            L=_mat(d.L), K=_vec(d.K), K_terminal=_vec(d.K_terminal),
+            P_terminal=_mat(d.P_terminal), estimate_covariance=_mat(d.estimate_covariance),
+            ball_information=_mat(d.ball_information),
+        )
+
+
 @dataclass(frozen=True)
 class PlanRequest:
     """What the law would pass to the planner at its step ``cycle``: the state, target,
@@ -760,33 +911,30 @@ def _solve_warm(r: PlanRequest, params: _Params, from_state: np.ndarray) -> Plan
 
 
 class _PlanSampler:
-    """``ArcPlan.sample`` at one time, the same arithmetic, with the plan's arc boundaries
-    computed once: ``sample`` recomputes them at each call, which for a plan of a few arcs
-    is a quarter of the law's cycle."""
+    """``ArcPlan.sample`` at one time in plain floats (``arcs._step``, the closed form
+    ``_propagate`` evaluates over arrays), with the plan's arc boundaries computed once:
+    ``sample`` recomputes them at each call, which for a plan of a few arcs is a quarter of
+    the law's cycle."""
 
     def __init__(self, plan: ArcPlan) -> None:
         self.plan = plan
         self.edges = plan.switch_times_s
-        self.bounds = np.array(
-            [plan.start]
-            + [
-                _replay(plan.params, plan.start, plan.input_v[: i + 1],
-                        plan.duration_s_each[: i + 1])
-                for i in range(len(plan.input_v))
-            ]
-        )
+        self._edges: Vec = _vec(np.asarray(self.edges))
+        self.bounds = [plan.start] + [
+            _replay(plan.params, plan.start, plan.input_v[: i + 1], plan.duration_s_each[: i + 1])
+            for i in range(len(plan.input_v))
+        ]
 
     def at(self, time_s: float) -> tuple[np.ndarray, float]:
         """The plan's state (4,) and input at ``time_s``."""
-        t = np.array([time_s])
-        k = int(np.searchsorted(self.edges, t, side="right")[0]) - 1
+        k = bisect.bisect_right(self._edges, time_s) - 1
         if k < 0:
             return np.array(self.plan.start, dtype=float), 0.0
         if k >= len(self.plan.input_v):
             return np.zeros(4), 0.0
-        u = np.asarray(self.plan.input_v)[[k]]
-        state = _propagate(self.plan.params, self.bounds[[k]], u, t - self.edges[[k]])
-        return state[0], float(u[0])
+        u = float(self.plan.input_v[k])
+        state = _step(self.plan.params, self.bounds[k], u, time_s - self._edges[k])
+        return np.array(state), u
 
 
 @dataclass
@@ -827,7 +975,9 @@ class ReplanningController:
     _servo_from: int = field(init=False, default=0)
     _ball_from: int = field(init=False, default=0)
     _gamma_error: float = field(init=False, default=0.0)  # the filter's δγ (estimate_gamma)
-    _covariance: np.ndarray = field(init=False, default_factory=lambda: np.zeros((5, 5)))
+    # the filter's covariance of (θ, θ̇, ẋ, x, δγ), rows of floats (estimate_gamma)
+    _covariance: Mat = field(init=False, default=())
+    _cycle_rows: _CycleRows | None = field(init=False, default=None)
     # Deferred planning (the law over a planner): a plan wanted is a request, answered later
     # through ``adopt``; at most one is outstanding (a newer one is dropped meanwhile), and
     # ``issued`` is the request this step made, for whoever runs the planner to take.
@@ -870,6 +1020,13 @@ class ReplanningController:
         )
         self.design = _design(self._identified(), s, self.position_noise_m)
         self.estimate = np.array(self.initial_state, dtype=float)
+
+    def _rows(self) -> _CycleRows:
+        """The design in force as the cycle's tuples (made again when the design changes)."""
+        rows = self._cycle_rows
+        if rows is None or rows.design is not self.design:
+            rows = self._cycle_rows = _CycleRows.of(self.design, self.settings.period_s)
+        return rows
 
     def _identified(self) -> Identified:
         a, alpha, c = self.motor_ls.mean
@@ -980,18 +1137,18 @@ class ReplanningController:
     def step(self, theta_rad: float, position_m: float) -> CycleRecord:
         s = self.settings
         d = self.design
-        y = _C @ np.array([theta_rad, 0.0, 0.0, position_m])
+        rows = self._rows()
+        y = (rows.filter.angle_gain * theta_rad, rows.filter.position_gain * position_m)
         if self.cycle and s.estimate_gamma:
             self._filter(y)
         elif self.cycle:
-            prior = d.Ad @ self.estimate + d.bd * self._last_drive_v
-            self.estimate = prior + d.L @ (y - _C @ prior)
+            self.estimate = np.array(_observe(rows, self.estimate.tolist(), self._last_drive_v, y))
         else:
             self.estimate = np.array(
                 [theta_rad, self.initial_state[1], self.initial_state[2], position_m]
             )
-            self._covariance = scipy.linalg.block_diag(
-                d.estimate_covariance, d.identified.gamma_std**2
+            self._covariance = _mat(
+                scipy.linalg.block_diag(d.estimate_covariance, d.identified.gamma_std**2)
             )
         self._theta.append(theta_rad)
         self._position.append(position_m)
@@ -1003,7 +1160,7 @@ class ReplanningController:
                 gamma_error = self._gamma_error
                 identified = replace(
                     identified, gamma=d.identified.gamma + gamma_error,
-                    gamma_std=math.sqrt(float(self._covariance[4, 4])),
+                    gamma_std=math.sqrt(self._covariance[4][4]),
                 )
             self.ball_ls.noise_var = self.position_noise_m**2
             self._request_design(
@@ -1018,41 +1175,25 @@ class ReplanningController:
         self.cycle += 1
         return record
 
-    def _filter(self, y: np.ndarray) -> None:
+    def _filter(self, y: tuple[float, float]) -> None:
         """One Kalman step on (θ, θ̇, ẋ, x, δγ): ẍ = (γ̂ + δγ)·θ, δγ constant."""
-        d = self.design
-        h = self.settings.period_s
-        theta, rate = float(self.estimate[THETA]), float(self.estimate[1])
-        F = np.eye(5)
-        F[:4, :4] = d.Ad
-        # δγ·∫θ and δγ·∫∫θ over the step, θ moving at its rate (a fast stroke moves θ by
-        # a percent of itself in one step)
-        F[2, 4] = h * (theta + 0.5 * rate * h)
-        F[3, 4] = 0.5 * h * h * (theta + rate * h / 3.0)
-        z = np.append(self.estimate, self._gamma_error)
-        prior = F @ z
-        prior[:4] += d.bd * self._last_drive_v
-        P = F @ self._covariance @ F.T
-        P[:4, :4] += d.process_noise
-        if self.settings.ball_noise_with_angle:
-            s = self.settings
+        s = self.settings
+        ball_noise_var = 0.0
+        if s.ball_noise_with_angle:
             # what the model leaves out of the ball's acceleration is a fraction of γθ (the
             # nonlinear ball, a gain): at θ = 0 only the servo's unmeasured fraction of an
             # encoder count is left
             ball_noise = math.hypot(
-                s.unmodelled_ball_m_s2 * theta / s.theta_limit_rad,
-                abs(d.identified.gamma) * s.encoder_step_rad / math.sqrt(12.0),
+                s.unmodelled_ball_m_s2 * float(self.estimate[THETA]) / s.theta_limit_rad,
+                abs(self.design.identified.gamma) * s.encoder_step_rad / math.sqrt(12.0),
             )
-            P[:4, :4] += ball_noise**2 * d.ball_process_noise
-        H = np.zeros((2, 5))
-        H[:, :4] = _C
-        S = H @ P @ H.T + d.measurement_noise
-        gain = np.linalg.solve(S, H @ P).T
-        z = prior + gain @ (y - H @ prior)
-        P = P - gain @ H @ P
-        self._covariance = 0.5 * (P + P.T)
-        self.estimate = z[:4]
-        self._gamma_error = float(z[4])
+            ball_noise_var = ball_noise**2
+        state, self._covariance = filter_step(
+            self._rows().filter, (*self.estimate.tolist(), self._gamma_error),
+            self._covariance, self._last_drive_v, y, ball_noise_var,
+        )
+        self.estimate = np.array(state[:4])
+        self._gamma_error = state[4]
 
     def _learn(self) -> None:
         s = self.settings
@@ -1083,14 +1224,13 @@ class ReplanningController:
             ))
             self._noise_from = k
 
-    def _error(self) -> np.ndarray:
-        e = self.estimate.copy()
-        e[BALL_POSITION] -= self.target_m
-        return e
+    def _error(self) -> Vec:
+        e0, e1, e2, e3 = self.estimate.tolist()
+        return (e0, e1, e2, e3 - self.target_m)
 
     def _in_terminal_set(self, factor: float = 1.0) -> bool:
-        e = self._error()
-        return float(e @ self.design.P_terminal @ e) <= factor * self.design.terminal_level
+        level = _quadratic4(self._rows().P_terminal, self._error())
+        return level <= factor * self.design.terminal_level
 
     def _left_terminal_set(self) -> bool:
         """Whether the state has left the terminal set: beyond ``terminal_exit_factor`` × its
@@ -1101,10 +1241,12 @@ class ReplanningController:
         d = self.design
         if s.terminal_exit_sigmas is None:
             return not self._in_terminal_set(s.terminal_exit_factor)
+        rows = self._rows()
         e = self._error()
-        norm = math.sqrt(max(float(e @ d.P_terminal @ e), 1e-300))
-        gradient = d.P_terminal @ e / norm
-        sigma = math.sqrt(float(gradient @ d.estimate_covariance @ gradient))
+        Pe = tuple(_dot4(row, e) for row in rows.P_terminal)
+        norm = math.sqrt(max(_dot4(e, Pe), 1e-300))
+        gradient = tuple(v / norm for v in Pe)
+        sigma = math.sqrt(_quadratic4(rows.estimate_covariance, gradient))
         return norm - math.sqrt(d.terminal_level) > s.terminal_exit_sigmas * sigma
 
     def request_plan(self, state: np.ndarray) -> None:
@@ -1145,7 +1287,7 @@ class ReplanningController:
                     self._plan_from_estimate(near=True)
                     plan = self.plan
         if self.terminal:
-            drive = -float(d.K_terminal @ self._error())
+            drive = -_dot4(self._rows().K_terminal, self._error())
             reference = np.array([0.0, 0.0, 0.0, self.target_m])
             feedforward = 0.0
         elif plan is None:  # no plan yet (it is being solved): nothing to track, no drive
@@ -1156,7 +1298,9 @@ class ReplanningController:
             state, feedforward = self._plan_sampler(plan).at(self._elapsed())
             reference = state.copy()
             reference[BALL_POSITION] += plan.target_m
-            drive = feedforward + float(d.K @ (reference - self.estimate))
+            r, e = reference.tolist(), self.estimate.tolist()
+            error = (r[0] - e[0], r[1] - e[1], r[2] - e[2], r[3] - e[3])
+            drive = feedforward + _dot4(self._rows().K, error)
         if self.terminal and self.settings.rest_threshold:
             # at rest every drive smaller than the estimate's noise is a reaction to noise:
             # a soft threshold (continuous) leaves it out
@@ -1182,17 +1326,18 @@ class ReplanningController:
         # for the identified model and drive as they are now
         from_state = np.array([on_plan[0], on_plan[1], est[2], est[3]])
         moved = _moved(plan, d.identified.params, d.drive_limit_v, s.model_change)
-        miss = np.array([est[2] - on_plan[2], est[3] - on_plan[3] - plan.target_m])
+        miss = (float(est[2] - on_plan[2]), float(est[3] - on_plan[3] - plan.target_m))
+        information = self._rows().ball_information
         if s.detour_sigmas is None:
             far = abs(est[3] - (on_plan[3] + plan.target_m)) > s.detour_position_m or abs(
                 est[2] - on_plan[2]
             ) > s.detour_speed_m_s
         else:
-            far = float(miss @ d.ball_information @ miss) > s.detour_sigmas**2
+            far = _quadratic2(information, miss) > s.detour_sigmas**2
         self._request(replace(
             self._plan_request("warm", from_state),
             plan=plan, elapsed_s=elapsed, far=bool(far), moved=moved, reshape=s.reshape,
-            significant=float(miss @ d.ball_information @ miss) > s.reshape_sigmas**2,
+            significant=_quadratic2(information, miss) > s.reshape_sigmas**2,
             reshape_max_v=d.reshape_max_v, headroom_v=d.headroom_v,
             cold_state=_row(self._clipped(from_state if moved else None)),
         ))
@@ -1208,8 +1353,8 @@ class ReplanningController:
         d = self.design
         if not (self.settings.estimate_gamma and self.settings.ball_noise_with_angle):
             return d.ramp_v
-        P = self._covariance[:4, :4]
-        return 2.0 * math.sqrt(float(d.K_terminal @ P @ d.K_terminal))
+        P = tuple(row[:4] for row in self._covariance[:4])
+        return 2.0 * math.sqrt(_quadratic4(P, self._rows().K_terminal))
 
     def _compensate(self, drive_v: float) -> float:
         d = self.design
@@ -1218,6 +1363,15 @@ class ReplanningController:
         command = drive_v + dz * max(-1.0, min(1.0, drive_v / ramp))
         limit = self.settings.voltage_limit_v
         return max(-limit, min(limit, command))
+
+
+def _observe(rows: _CycleRows, estimate: Vec, drive_v: float, y: tuple[float, float]) -> Vec:
+    """The fixed-gain observer's step (without estimate_gamma): predict, then correct."""
+    f = rows.filter
+    prior = tuple(_dot4(f.Ad[i], estimate) + f.bd[i] * drive_v for i in range(4))
+    r0 = y[0] - f.angle_gain * prior[THETA]
+    r1 = y[1] - f.position_gain * prior[BALL_POSITION]
+    return tuple(prior[i] + (rows.L[i][0] * r0 + rows.L[i][1] * r1) for i in range(4))
 
 
 def _moved(plan: ArcPlan, params: _Params, drive_v: float, tolerance: float) -> bool:

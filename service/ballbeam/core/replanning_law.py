@@ -16,8 +16,11 @@ speed.
 Each answer taken is in the step's output (``PlanTaken``: the cycle, the request's cycle,
 the plan or none), recorded on ``/plans``. A replay gives the law the recorded answers
 (``recorded``): each is offered at the cycle the run took it, nothing is solved, and the
-re-run follows the run's plans whatever today's planner would give (the law's own filter and
-re-design still go through BLAS: bit for bit on the kernel the run had, docs/decisions.md).
+re-run follows the run's plans whatever today's planner would give. Each design the law takes
+(the one it starts with, at cycle 0, and each re-design) is an answer too, recorded whole: its
+Riccati equations' last bits are the machine's LAPACK's, so a replay takes the run's designs,
+and the law's cycle is plain float arithmetic (``replanning.filter_step``): a run re-runs bit
+for bit whatever the BLAS kernel.
 If the re-run's request is not the one the recorded answer answered, the replay says so
 (``plan_mismatch``).
 """
@@ -84,6 +87,14 @@ class ReplanningLaw:
             settings, np.array(initial_state, dtype=float), target_m=task.target_at(0.0)
         )
         self.controller.deferred = True
+        # The design the law starts with (its Riccati solutions are this machine's LAPACK's):
+        # recorded as a re-design taken at cycle 0, and a replay starts from the run's.
+        started = recorded.get((0, True)) if recorded is not None else None
+        if recorded is not None:
+            recorded = {key: taken for key, taken in recorded.items() if key != (0, True)}
+            self.recorded = recorded
+        if started is not None and started.design_made is not None:
+            self.controller.design = started.design_made
         # The first plan is asked for now, from the run's start (the plant holds the ball
         # until the first command): it is due at the first cycle, so a runner solves it
         # before the run begins instead of the run starting with no plan.
@@ -94,7 +105,9 @@ class ReplanningLaw:
         # offered, by (a design's?, the request's cycle)
         self._answers: dict[tuple[bool, int], Answer] = {}
         self._issued: list[Request] = []  # for the caller to take
-        self._taken: list[PlanTaken] = []  # since the last output
+        self._taken: list[PlanTaken] = [  # since the last output
+            PlanTaken(0, 0, None, design=True, design_made=self.controller.design)
+        ]
         if recorded is None and self._initial is not None:
             if planner is not None:
                 self.offer(planner(self._initial))
@@ -227,11 +240,13 @@ class ReplanningLaw:
             del self._answers[design, request.cycle]
             if isinstance(answer, DesignAnswer):
                 controller.adopt_design(answer)
-                plan = None
+                taken = PlanTaken(
+                    self._cycle, self.request_cycle(request), None, True, answer.design
+                )
             else:
                 controller.adopt(answer)
-                plan = answer.plan
-            self._taken.append(PlanTaken(self._cycle, self.request_cycle(request), plan, design))
+                taken = PlanTaken(self._cycle, self.request_cycle(request), answer.plan)
+            self._taken.append(taken)
 
     def _offer_recorded(self) -> None:
         assert self.recorded is not None
@@ -255,7 +270,11 @@ class ReplanningLaw:
                     )
                 continue
             if isinstance(request, DesignRequest):
-                # the design is a function of the request: made again here, as the run did
-                self.offer(solve_design_request(request))
+                # the run's design (a log from before has none: made again from the request)
+                self.offer(
+                    DesignAnswer(request.cycle, taken.design_made)
+                    if taken.design_made is not None
+                    else solve_design_request(request)
+                )
             else:
                 self.offer(PlanAnswer(request.cycle, taken.plan))

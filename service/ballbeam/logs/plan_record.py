@@ -5,18 +5,28 @@ planner had none.
 A plan is written field by field (``ArcPlan``'s), each float as ``float.hex``: the text gives
 back the very same bits, so a replay can inject the recorded answers instead of solving and
 re-run the law bit for bit on any machine (and whatever today's planner would solve).
+A re-design taken carries the design itself (``made``: every field of
+``replanning._Design``, its identified model and its guard; floats as ``float.hex``, arrays
+with their shape): a replay takes it as the run did instead of solving its Riccati equations
+again, whose last bits depend on the machine's LAPACK and BLAS kernel. The design the law
+started with is one, taken at cycle 0 to a request of cycle 0.
 ``wait_ns``, where the daemon measured it: wall time from sending the request to reading the
 answer (information; a replay does not use it).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping
 from typing import Any
 
+import numpy as np
+
 from ballbeam.core.control import PlanTaken
+from ballbeam.core.guard import AngleGuard, SoftCap
 from ballbeam.core.planning.arcs import ArcPlan
+from ballbeam.core.replanning import Identified, _Design
 from ballbeam.errors import LogFormatError
 from ballbeam.logs.reader import RunLog
 
@@ -31,6 +41,7 @@ PLAN_SCHEMA = {
         "request_cycle": {"type": "integer"},
         "design": {"type": "boolean"},
         "wait_ns": {"type": "integer"},
+        "made": {"type": "object"},
         "plan": {
             "type": ["object", "null"],
             "properties": {
@@ -54,6 +65,8 @@ def plan_message(taken: PlanTaken, wait_ns: int | None = None) -> dict[str, Any]
     }
     if taken.design:
         message["design"] = True
+        if taken.design_made is not None:
+            message["made"] = encode_design(taken.design_made)
     if wait_ns is not None:
         message["wait_ns"] = int(wait_ns)
     return message
@@ -79,7 +92,13 @@ def plan_from_message(message: Mapping[str, Any]) -> PlanTaken:
     fields, design = message["plan"], message.get("design", False)
     if not isinstance(design, bool) or (design and fields is not None):
         raise ValueError("a re-design carries no plan")
-    return PlanTaken(cycle, request_cycle, None if fields is None else _plan(fields), design)
+    made = message.get("made")
+    if made is not None and not design:
+        raise ValueError("a plan carries no design")
+    return PlanTaken(
+        cycle, request_cycle, None if fields is None else _plan(fields), design,
+        None if made is None else decode_design(made),
+    )
 
 
 def _plan(fields: Mapping[str, Any]) -> ArcPlan:
@@ -130,3 +149,83 @@ def _float(text: object) -> float:
     if not math.isfinite(value):
         raise ValueError(f"{text} is not finite")
     return value
+
+
+# -- a re-design, field by field ------------------------------------------------------------
+
+_DESIGN_TYPES: dict[str, type] = {
+    cls.__name__: cls for cls in (_Design, Identified, AngleGuard, SoftCap)
+}
+
+
+def encode_design(design: _Design) -> dict[str, Any]:
+    """A design as JSON: each dataclass as its type's name and fields, floats as
+    ``float.hex``, tuples as lists, arrays (float64) as their shape and values."""
+    encoded = _encode(design)
+    assert isinstance(encoded, dict)
+    return encoded
+
+
+def decode_design(value: object) -> _Design:
+    """The design of :func:`encode_design`'s JSON, bit for bit; ValueError where it is not."""
+    design = _decode(value)
+    if not isinstance(design, _Design):
+        raise ValueError("a recorded design is not a design")
+    return design
+
+
+def _encode(value: object) -> Any:
+    if value is None or isinstance(value, bool):
+        return value
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, float):
+        return float(value).hex()
+    if isinstance(value, tuple):
+        return [_encode(item) for item in value]
+    if isinstance(value, np.ndarray):
+        if value.dtype != np.float64:
+            raise TypeError(f"a design's array of {value.dtype}")
+        return {"shape": list(value.shape), "array": [float(v).hex() for v in value.ravel()]}
+    name = type(value).__name__
+    if dataclasses.is_dataclass(value) and _DESIGN_TYPES.get(name) is type(value):
+        return {
+            "type": name,
+            "fields": {f.name: _encode(getattr(value, f.name)) for f in dataclasses.fields(value)},
+        }
+    raise TypeError(f"a design holds a {name}")
+
+
+def _decode(value: object) -> Any:
+    if value is None or isinstance(value, (bool, int)):
+        return value
+    if isinstance(value, str):
+        return _float_any(value)
+    if isinstance(value, list):
+        return tuple(_decode(item) for item in value)
+    if isinstance(value, dict) and set(value) == {"shape", "array"}:
+        shape, items = value["shape"], value["array"]
+        if not (
+            isinstance(shape, list) and isinstance(items, list)
+            and all(isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in shape)
+            and math.prod(shape) == len(items)
+        ):
+            raise ValueError("an array's shape does not match its values")
+        return np.array([_float_any(item) for item in items], dtype=np.float64).reshape(shape)
+    if isinstance(value, dict) and set(value) == {"type", "fields"}:
+        cls = _DESIGN_TYPES.get(value["type"]) if isinstance(value["type"], str) else None
+        fields = value["fields"]
+        if cls is None or not isinstance(fields, dict):
+            raise ValueError(f"{value['type']!r} is not a part of a design")
+        names = {f.name for f in dataclasses.fields(cls)}
+        if set(fields) != names:
+            raise ValueError(f"a {cls.__name__} needs the fields {sorted(names)}")
+        return cls(**{name: _decode(item) for name, item in fields.items()})
+    raise ValueError(f"{value!r} is not part of a recorded design")
+
+
+def _float_any(text: object) -> float:
+    """A float written with float.hex (a design may hold infinities)."""
+    if not isinstance(text, str):
+        raise ValueError(f"{text!r} is not a float written with float.hex")
+    return float.fromhex(text)
