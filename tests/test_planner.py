@@ -4,6 +4,7 @@ going, a planner that never outlives its daemon, and a real-time run."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import os
@@ -98,7 +99,9 @@ def _cmdline(pid: int) -> str:
 @pytest.mark.bus
 def test_a_daemon_killed_with_sigkill_leaves_no_planner_behind(tmp_path: Path) -> None:
     """``ballbeam run`` (lock-step): the daemon's planner process is found, the daemon killed
-    with SIGKILL (no clean-up of its own), and the planner is gone within seconds."""
+    with SIGKILL (no clean-up of its own), and the planner is gone within seconds; then the
+    launcher is killed too, and no process of the run outlives it (the emulator, in a session
+    of its own, stops with the launcher)."""
     launcher = subprocess.Popen(
         ballbeam_argv("run", str(PAPER), "--set", f"run.log_dir='{tmp_path}'",
                       "--set", "controller.kind='replanning'", "--set", "run.duration_s=60.0"),
@@ -119,9 +122,19 @@ def test_a_daemon_killed_with_sigkill_leaves_no_planner_behind(tmp_path: Path) -
         while _pid_alive(planner) and time.monotonic() < gone_by:
             time.sleep(0.05)
         assert not _pid_alive(planner), "the planner outlived its daemon"
+        others = _children(launcher.pid)
+        assert others, "no emulator found"
     finally:
         os.killpg(launcher.pid, signal.SIGKILL)
         launcher.wait(timeout=30)
+    gone_by = time.monotonic() + 10.0
+    while any(map(_pid_alive, others)) and time.monotonic() < gone_by:
+        time.sleep(0.05)
+    left = [f"{pid}: {_cmdline(pid)[:120]}" for pid in others if _pid_alive(pid)]
+    for pid in others:  # the test leaves nothing behind either way
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGKILL)
+    assert not left, f"outlived the launcher: {left}"
 
 
 class _FailingPlanner(PlannerProcess):
