@@ -66,6 +66,7 @@ CORE_ALLOWED = (
     "itertools",
     "operator",
     "enum",
+    "bisect",
     "ballbeam.errors",
     "ballbeam.core",
 )

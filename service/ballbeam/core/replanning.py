@@ -242,16 +242,17 @@ class NoiseEstimate:
         self.floor_var_m2 = floor_m**2
         self.windows = 0
         self.rejected = 0
+        # Imported with the law, before its run (in a cycle the import stalls it for a second),
+        # not with this module: every daemon imports the module, whichever law it runs.
+        from scipy.stats import f as f_distribution
+
+        self._f_quantile = f_distribution.isf
 
     def add(self, sum_squares_m2: float, dof: int) -> bool:
         if dof <= 0:
             return False
-        # (imported here: scipy.stats would load with this module into every daemon, whichever
-        # law it runs)
-        from scipy.stats import f as f_distribution
-
         ratio = sum_squares_m2 / dof / self.variance_m2
-        if ratio > f_distribution.isf(_OUTLIER_TAIL, dof, self.dof):
+        if ratio > self._f_quantile(_OUTLIER_TAIL, dof, self.dof):
             self.rejected += 1
             return False
         self.sum_squares_m2 += sum_squares_m2

@@ -8,12 +8,14 @@ import json
 import logging
 import os
 import sys
+import time
 from pathlib import Path
 from typing import TYPE_CHECKING, BinaryIO
 
 from ballbeam.assembly import control_law, controller_design
 from ballbeam.config import Config
 from ballbeam.core.control import ControllerDesign
+from ballbeam.core.replanning_law import ReplanningLaw
 from ballbeam.errors import BusError
 from ballbeam.logs import design_record
 from ballbeam.logs.recorder import Recorder
@@ -144,6 +146,18 @@ def _run_recorded(
             planner.close()
 
 
+def _first_plan(law: ReplanningLaw, planner: PlannerProcess) -> None:
+    """The re-planning law's first plan (from the configured start) before the bus is open: the
+    plant's first samples would wait unread meanwhile, and be refused as stale."""
+    for request in law.take_requests():
+        if not planner.send(request):
+            return  # the daemon's loop finds the planner gone and says so
+    give_up = time.monotonic() + PLANNER_READY_S
+    while law.answer_due_cycle is not None and planner.alive and time.monotonic() < give_up:
+        for answer, _ in planner.receive(0.1):
+            law.offer(answer)
+
+
 def _run_with_planner(
     config: Config,
     log_path: Path,
@@ -235,9 +249,11 @@ def _run_with_planner(
         if live is not None:
             live.start()
             log.info("live view on %s (Foxglove: Open connection, Foxglove WebSocket)", live.url)
+        law = control_law(config, design, plans_in_process=False)
+        if isinstance(law, ReplanningLaw) and planner is not None:
+            _first_plan(law, planner)
         bus = open_bus(config.bus)
         try:
-            law = control_law(config, design, plans_in_process=False)
             daemon = ControllerDaemon(config, law, bus, contract, recording, stop, auth,
                                       run_over_fd=link_fd, emulator_lock=emulator_lock,
                                       planner=planner)
