@@ -28,7 +28,6 @@ from ballbeam.runtime.process import (
     resolve_config_argument,
     secret_from_arguments,
     settle_heap,
-    stop_with_parent,
 )
 from ballbeam.runtime.stop import StopFlag
 from ballbeam_emulator.node import PlantEmulator
@@ -54,8 +53,6 @@ def run_emulator(config: Config, secret: RunKey | bytes | None = None) -> None:
             config.plant.cpu, config.plant.realtime_priority, config.plant.fair_slice_us
         )
     peer_link = PeerLink.from_environment()
-    if peer_link is not None:  # started by `ballbeam run`: its run ends with the launcher
-        stop_with_parent()  # (a session of its own: no terminal signal reaches it)
     own_lock = OwnerLock.from_environment(slot=EMULATOR_SLOT)  # held till death: for the daemon
     if own_lock is not None:
         own_lock.hold()
