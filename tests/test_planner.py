@@ -11,28 +11,22 @@ import os
 import secrets
 import signal
 import subprocess
-import threading
 import time
 from pathlib import Path
 
-import can
 import numpy as np
 import pytest
 
-from ballbeam.config import Config, load_config
+from ballbeam.config import load_config
 from ballbeam.core.replanning import PlanRequest, Settings, solve_plan_request
 from ballbeam.evaluation import replay
 from ballbeam.logs.plan_record import recorded_plans
 from ballbeam.logs.reader import read_log
-from ballbeam.protocol.frames import FrameContract
-from ballbeam.protocol.secoc import FrameAuthenticator
 from ballbeam.runtime.daemon import node
-from ballbeam.runtime.daemon.node import run_daemon
 from ballbeam.runtime.planner import PlannerProcess
-from ballbeam.runtime.stop import StopFlag
-from ballbeam_emulator.node import PlantEmulator
 
 from .conftest import PAPER, REPO, ballbeam_argv
+from .test_daemon import run_in_process
 
 REPLANNING = ("controller.kind='replanning'",)
 REST_BAND_M = 5e-4
@@ -155,24 +149,6 @@ class _FailingPlanner(PlannerProcess):
         return super().send(request)  # type: ignore[arg-type]
 
 
-def _run_in_process(config: Config, log_path: Path) -> str:
-    """Daemon and emulator of one lock-step run on a virtual bus, the emulator in a thread."""
-    stop_plant = StopFlag()
-    plant_bus = can.Bus(interface="virtual", channel=config.bus.channel)
-    secret = secrets.token_bytes(32)
-    emulator = PlantEmulator(config, plant_bus, FrameContract.load(),
-                             auth=FrameAuthenticator(secret))
-    plant = threading.Thread(target=emulator.run_lockstep, args=(stop_plant,), daemon=True)
-    plant.start()
-    try:
-        return run_daemon(config, log_path, None, secret=secret)
-    finally:
-        stop_plant.set()
-        plant.join(timeout=10)
-        emulator.stop()
-        plant_bus.shutdown()
-
-
 @pytest.mark.parametrize(("crash", "fault"), [(False, "planner_error"), (True, "planner_lost")])
 def test_a_planner_that_fails_or_dies_leaves_the_law_on_its_plan_and_the_run_going(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, crash: bool, fault: str
@@ -184,7 +160,7 @@ def test_a_planner_that_fails_or_dies_leaves_the_law_on_its_plan_and_the_run_goi
         "run.duration_s=0.6",
     ))
     log_path = tmp_path / "run.mcap"
-    assert _run_in_process(config, log_path) == "completed"
+    assert run_in_process(config, log_path) == "completed"
     run_log = read_log(log_path)
     assert len(run_log.topics["/command"].values["voltage_v"]) >= 600  # every cycle ran
     faults = [m["kind"] for m in run_log.json_topics["/faults"].messages]
