@@ -18,6 +18,7 @@ import shutil
 import socket
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -165,20 +166,36 @@ def _check_slow_machine_figures(summary: dict[str, object]) -> None:
 CANDUMP_BUFFER_BYTES = 8 << 20
 
 
-def _candump(interface: str) -> subprocess.Popen[str]:
-    dump = subprocess.Popen(
+@dataclass
+class _Dump:
+    """candump, its output read as it comes: unread, the pipe fills after ~1,400 lines, candump
+    blocks on it and the frames still in its socket are lost when it is stopped."""
+
+    process: subprocess.Popen[str]
+    lines: list[str]
+    reader: threading.Thread
+
+
+def _candump(interface: str) -> _Dump:
+    process = subprocess.Popen(
         ["candump", "-d", "-r", str(CANDUMP_BUFFER_BYTES), "-L", interface],
         stdout=subprocess.PIPE, text=True,
     )
+    lines: list[str] = []
+    assert process.stdout is not None
+    reader = threading.Thread(target=lambda: lines.extend(process.stdout or ()), daemon=True)
+    reader.start()
     time.sleep(0.5)  # it binds before the run starts
-    return dump
+    return _Dump(process, lines, reader)
 
 
-def _dumped(dump: subprocess.Popen[str]) -> list[tuple[int, bytes]]:
-    dump.terminate()
-    out, _ = dump.communicate(timeout=10)
+def _dumped(dump: _Dump) -> list[tuple[int, bytes]]:
+    time.sleep(1.0)  # what the runs sent last reaches candump's socket and its output
+    dump.process.terminate()
+    dump.process.wait(timeout=10)
+    dump.reader.join(timeout=10)
     frames = []
-    for line in out.splitlines():
+    for line in dump.lines:
         # -d: the kernel's count of frames the socket dropped, when it grows
         assert not line.startswith("DROPCOUNT"), f"candump lost frames: {line}"
         # "(1700000000.123456) vcan0 101#0A0B..." (classic) or "101##0..." (CAN FD, flags nibble)
@@ -323,7 +340,8 @@ def test_classic_vcan_carries_the_e2e_contract_that_candump_and_cantools_read(
     for frame_id, data in ours:
         assert len(data) == 8
         assert check_profile5_crc(data, frame_id), (hex(frame_id), data.hex())
-        decoded = database.decode_message(frame_id, data)
+        # choices as numbers: a named value ("MotorOff") is truthy whatever it names
+        decoded = database.decode_message(frame_id, data, decode_choices=False)
         # A lock-step resend repeats a command (same counter): each command once.
         if frame_id == VOLTAGE_COMMAND_ID and decoded["Enable"] and (
             decoded["Counter"] != last_counter
