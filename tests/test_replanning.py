@@ -291,33 +291,6 @@ def test_the_filter_learns_gamma_from_every_sample() -> None:
 _C_TEST = np.array([[57.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 100.0]])
 
 
-def test_the_terminal_set_is_left_only_beyond_the_estimates_uncertainty() -> None:
-    """A true state on the set's boundary, estimated with the estimator's own error: the
-    statistical exit (3σ) fires in about Φ(−3) of the draws, far fewer than a raw test of the
-    estimate against the set (half of them)."""
-    settings = Settings(terminal_exit_sigmas=3.0)
-    controller = ReplanningController(settings, np.zeros(4))
-    d = controller.design
-    rng = np.random.default_rng(11)
-    direction = np.array([0.0, 0.0, 0.0, 1.0])
-    boundary = direction * math.sqrt(d.terminal_level / float(direction @ d.P_terminal @ direction))
-    errors = rng.multivariate_normal(np.zeros(4), d.estimate_covariance, size=4000)
-    left = raw = 0
-    for error in errors:
-        controller.estimate = boundary + error
-        left += controller._left_terminal_set()
-        raw += not controller._in_terminal_set()
-    assert left / len(errors) < 0.01
-    assert 0.3 < raw / len(errors) < 0.7
-    # far outside: along the ray the set's norm √(eᵀPe) grows linearly, so this point is ten
-    # of the estimate's standard deviations along that norm beyond the boundary: left
-    root = math.sqrt(d.terminal_level)
-    gradient = d.P_terminal @ boundary / root
-    sigma = math.sqrt(float(gradient @ d.estimate_covariance @ gradient))
-    controller.estimate = boundary * (1.0 + 10.0 * sigma / root)
-    assert controller._left_terminal_set()
-
-
 def test_at_rest_the_filter_settles_to_the_kalman_filter_of_the_rest_noise() -> None:
     """θ held at 0: the ball's unmodelled acceleration is only the encoder's unmeasured
     fraction of a count; the running covariance settles to the steady Kalman filter of that

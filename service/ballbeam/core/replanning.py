@@ -482,9 +482,6 @@ class Settings:
     reshape: bool = False  # re-plans without a root re-shape the remaining arcs' inputs
     headroom_v: float = 0.3  # the plan's drive kept for re-shaping
     reshape_sigmas: float = 0.0  # ... when the ball is off the plan by more than this many σ
-    # the terminal LQR hands back when the estimate is outside its set by more than this many
-    # of its own standard deviations (None: the fixed factor above)
-    terminal_exit_sigmas: float | None = None
     # γ's error a state of the estimator (a Kalman filter on (θ, θ̇, ẋ, x, δγ)) rather than
     # process noise of a fixed-gain observer: the ball's acceleration error γ̃·θ is followed
     # as θ swings, and γ is learnt from every sample
@@ -1234,21 +1231,9 @@ class ReplanningController:
         return level <= factor * self.design.terminal_level
 
     def _left_terminal_set(self) -> bool:
-        """Whether the state has left the terminal set: beyond ``terminal_exit_factor`` × its
-        level, or (``terminal_exit_sigmas`` set) outside it by more than that many standard
-        deviations of the estimate's own error, measured along the set's norm
-        √(eᵀPe) (its gradient Pe/√(eᵀPe) carries the error's covariance)."""
-        s = self.settings
-        d = self.design
-        if s.terminal_exit_sigmas is None:
-            return not self._in_terminal_set(s.terminal_exit_factor)
-        rows = self._rows()
-        e = self._error()
-        Pe = tuple(_dot4(row, e) for row in rows.P_terminal)
-        norm = math.sqrt(max(_dot4(e, Pe), 1e-300))
-        gradient = tuple(v / norm for v in Pe)
-        sigma = math.sqrt(_quadratic4(rows.estimate_covariance, gradient))
-        return norm - math.sqrt(d.terminal_level) > s.terminal_exit_sigmas * sigma
+        """Whether the state has left the terminal set grown by ``terminal_exit_factor`` (the
+        estimate's noise alone must not hand back)."""
+        return not self._in_terminal_set(self.settings.terminal_exit_factor)
 
     def request_plan(self, state: np.ndarray) -> None:
         """Ask for a cold plan from ``state`` (the run's start, before its first step)."""
