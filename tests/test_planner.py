@@ -93,9 +93,10 @@ def _cmdline(pid: int) -> str:
 @pytest.mark.bus
 def test_a_daemon_killed_with_sigkill_leaves_no_planner_behind(tmp_path: Path) -> None:
     """``ballbeam run`` (lock-step): the daemon's planner process is found, the daemon killed
-    with SIGKILL (no clean-up of its own), and the planner is gone within seconds; then the
-    launcher is killed too, and no process of the run outlives it (the emulator, in a session
-    of its own, stops with the launcher)."""
+    with SIGKILL (no clean-up of its own) while the launcher is stopped, and the planner is
+    gone within seconds; then the launcher is killed too, and no process of the run outlives
+    it (the emulator, in a session of its own, stops once the daemon and the launcher are
+    both gone)."""
     launcher = subprocess.Popen(
         ballbeam_argv("run", str(PAPER), "--set", f"run.log_dir='{tmp_path}'",
                       "--set", "controller.kind='replanning'", "--set", "run.duration_s=60.0"),
@@ -111,6 +112,9 @@ def test_a_daemon_killed_with_sigkill_leaves_no_planner_behind(tmp_path: Path) -
                 if spawned:
                     daemon, planner = child, spawned[0]
         assert daemon is not None and planner is not None, "no planner process found"
+        # The launcher is held still, so that it cannot stop the emulator itself when the
+        # daemon dies: as when both are killed at once.
+        os.kill(launcher.pid, signal.SIGSTOP)
         os.kill(daemon, signal.SIGKILL)
         gone_by = time.monotonic() + 5.0
         while _pid_alive(planner) and time.monotonic() < gone_by:

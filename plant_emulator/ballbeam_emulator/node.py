@@ -25,6 +25,7 @@ daemon still listens, so the log's final snapshot is what the emulator reports o
 from __future__ import annotations
 
 import logging
+import os
 import time
 from collections import deque
 from dataclasses import astuple, dataclass
@@ -157,6 +158,9 @@ class PlantEmulator:
         self.config = config
         self.auth = auth
         self.peer_link = peer_link
+        # The process that launched this one with the daemon (``ballbeam run``): when the daemon
+        # and it are both gone, nothing will ever stop this process (see _check_peer).
+        self.launcher_pid = os.getppid() if peer_link is not None else None
         self.bus = bus
         self.contract = contract
         params = plant_parameters(config)
@@ -419,6 +423,15 @@ class PlantEmulator:
             self.pending.clear()
             stop.set("run_over")
             log.info("the daemon's run is over: stopping")
+            return
+        if state == "gone" and self.launcher_pid is not None and os.getppid() != self.launcher_pid:
+            # The launcher died too (killed with the daemon): no one is left to stop this
+            # process, which would otherwise run on alone; it stops with 0 V.
+            self.voltage_v = 0.0
+            self.lookahead_v = ()
+            self.pending.clear()
+            stop.set("launcher_gone")
+            log.warning("the daemon and its launcher are gone: stopping")
             return
         # Once: a command heard since (a restarted daemon, by hand) is obeyed as usual.
         if state != "gone" or self.counters.peer_lost:
