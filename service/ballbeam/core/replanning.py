@@ -101,6 +101,39 @@ _RANK_TOLERANCE = 1e-9
 # the problem's own units, and its iteration bound.
 _RESHAPE_TOLERANCE = 1e-9
 _RESHAPE_ITERATIONS = 8
+# The ball's speed jumps (JumpDetector): a CUSUM's drift per sample and its threshold, in
+# standard deviations of the position innovation.
+_JUMP_DRIFT = 1.5
+_JUMP_THRESHOLD = 12.0
+
+
+class JumpDetector:
+    """A two-sided CUSUM of the filter's normalised position innovations: a jump of the
+    ball's speed the model does not allow (a tap) makes them grow in proportion to the time
+    since, and the sum crosses its threshold within tens of milliseconds (a 2 cm/s tap in
+    about 20 ms at the design noise), where noise alone takes the sum there about once in
+    hours (``_JUMP_DRIFT`` half a deviation per sample, ``_JUMP_THRESHOLD`` twelve). At the
+    crossing it returns the jump the innovations imply: the position error now and the speed
+    that built it since the sum left zero (at least the jump's: the sum leaves zero after the
+    jump, not before); then it starts again."""
+
+    def __init__(self) -> None:
+        self.sums = [0.0, 0.0]  # up, down
+        self.since = [0, 0]  # samples since each left zero
+
+    def step(self, innovation_m: float, std_m: float, period_s: float = 1e-3
+             ) -> tuple[float, float] | None:
+        z = innovation_m / std_m
+        for side, signed in enumerate((z, -z)):
+            total = self.sums[side] + signed - _JUMP_DRIFT
+            self.since[side] = self.since[side] + 1 if total > 0.0 else 0
+            self.sums[side] = max(total, 0.0)
+        side = 0 if self.sums[0] >= self.sums[1] else 1
+        if self.sums[side] <= _JUMP_THRESHOLD:
+            return None
+        elapsed_s = self.since[side] * period_s
+        self.sums, self.since = [0.0, 0.0], [0, 0]
+        return innovation_m, innovation_m / elapsed_s
 
 
 class WindowedLeastSquares:
@@ -681,11 +714,12 @@ def filter_step(
     drive_v: float,
     measured: tuple[float, float],
     ball_noise_var: float,
-) -> tuple[Vec, Mat]:
+) -> tuple[Vec, Mat, tuple[float, float]]:
     """One Kalman step (predict with the drive held over the period, then correct with the
     measurement ``measured`` = (angle_gain·θ, position_gain·x)) on (θ, θ̇, ẋ, x, δγ), where
     ẍ = (γ̂ + δγ)·θ and δγ is constant; ``ball_noise_var`` scales the ball's process noise.
-    Returns the state (5,) and its covariance (5, 5)."""
+    Returns the state (5,), its covariance (5, 5) and the position's innovation with its
+    predicted standard deviation [m]."""
     h = rows.period_s
     theta, rate = state[0], state[1]
     a = rows.Ad
@@ -741,7 +775,7 @@ def filter_step(
             )
             updated[i][j] = updated[j][i] = value
     symmetric = tuple(tuple(row) for row in updated)
-    return new_state, symmetric
+    return new_state, symmetric, (r1 / gp, math.sqrt(s11) / gp)
 
 
 @dataclass(frozen=True)
@@ -966,6 +1000,9 @@ class ReplanningController:
     reshaped: int = field(init=False, default=0)
     cold_plans: int = field(init=False, default=0)
     near_plans: int = field(init=False, default=0)
+    gamma_resets: int = field(init=False, default=0)  # the filter's γ given up (_filter_gamma)
+    jumps: int = field(init=False, default=0)  # the ball's speed jumps admitted (_admit_jump)
+    _jumps: JumpDetector = field(init=False, default_factory=lambda: JumpDetector())
     _last_drive_v: float = field(init=False, default=0.0)
     _theta: list[float] = field(init=False, default_factory=list)
     _position: list[float] = field(init=False, default_factory=list)
@@ -1156,10 +1193,7 @@ class ReplanningController:
             gamma_error = 0.0
             if s.estimate_gamma:  # γ is the filter's: the design takes it, the state re-based
                 gamma_error = self._gamma_error
-                identified = replace(
-                    identified, gamma=d.identified.gamma + gamma_error,
-                    gamma_std=math.sqrt(self._covariance[4][4]),
-                )
+                identified = self._filter_gamma(identified)
             self.ball_ls.noise_var = self.position_noise_m**2
             self._request_design(
                 DesignRequest(self.cycle, identified, s, gamma_error, self.position_noise_m)
@@ -1172,6 +1206,25 @@ class ReplanningController:
         self._last_drive_v = _dead_zone(command, d.identified.deadzone_v)
         self.cycle += 1
         return record
+
+    def _filter_gamma(self, identified: Identified) -> Identified:
+        """The plant with the filter's γ, unless the filter and the windows disagree beyond
+        ``confidence_z`` of their deviations: the filter learns γ from every sample, so a
+        motion its model cannot explain (a tap: a jump of the ball's speed) it takes for a
+        gain error, where the windows' χ² test leaves that window out. Then γ is the
+        windows', and the filter's γ error starts again from their deviation."""
+        filter_gamma = self.design.identified.gamma + self._gamma_error
+        filter_std = math.sqrt(self._covariance[4][4])
+        apart = abs(filter_gamma - identified.gamma)
+        if apart <= self.settings.confidence_z * math.hypot(filter_std, identified.gamma_std):
+            return replace(identified, gamma=filter_gamma, gamma_std=filter_std)
+        self.gamma_resets += 1
+        rows = [list(row) for row in self._covariance]
+        for i in range(4):
+            rows[i][4] = rows[4][i] = 0.0
+        rows[4][4] = identified.gamma_std**2
+        self._covariance = tuple(tuple(row) for row in rows)
+        return identified
 
     def _filter(self, y: tuple[float, float]) -> None:
         """One Kalman step on (θ, θ̇, ẋ, x, δγ): ẍ = (γ̂ + δγ)·θ, δγ constant."""
@@ -1186,12 +1239,29 @@ class ReplanningController:
                 abs(self.design.identified.gamma) * s.encoder_step_rad / math.sqrt(12.0),
             )
             ball_noise_var = ball_noise**2
-        state, self._covariance = filter_step(
+        state, self._covariance, innovation = filter_step(
             self._rows().filter, (*self.estimate.tolist(), self._gamma_error),
             self._covariance, self._last_drive_v, y, ball_noise_var,
         )
         self.estimate = np.array(state[:4])
         self._gamma_error = state[4]
+        jump = self._jumps.step(*innovation)
+        if jump is not None:
+            self._admit_jump(*jump)
+
+    def _admit_jump(self, position_m: float, speed_m_s: float) -> None:
+        """The ball's speed jumped (a tap): the filter's covariance of (ẋ, x) grows by the
+        jump the innovations show, so the next samples, not the model, say where the ball
+        is and how fast it goes (at rest the model is trusted so much that a tap would take
+        the filter a second to believe, and its γ error would take the blame meanwhile)."""
+        self.jumps += 1
+        rows = [list(row) for row in self._covariance]
+        added = ((speed_m_s * speed_m_s, speed_m_s * position_m),
+                 (speed_m_s * position_m, position_m * position_m))
+        for i, a in enumerate((2, 3)):
+            for j, b in enumerate((2, 3)):
+                rows[a][b] += added[i][j]
+        self._covariance = tuple(tuple(row) for row in rows)
 
     def _learn(self) -> None:
         s = self.settings
