@@ -57,6 +57,7 @@ from __future__ import annotations
 
 import bisect
 import math
+from collections import deque
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -105,6 +106,10 @@ _RESHAPE_ITERATIONS = 8
 # standard deviations of the position innovation.
 _JUMP_DRIFT = 1.5
 _JUMP_THRESHOLD = 12.0
+# The filter's steps kept to run again after a jump, and how many more than the detector's
+# count it goes back (the sum leaves zero some samples after the jump).
+_JUMP_LOOKBACK = 200
+_JUMP_LOOKBACK_MARGIN = 10
 
 
 class JumpDetector:
@@ -113,16 +118,16 @@ class JumpDetector:
     since, and the sum crosses its threshold within tens of milliseconds (a 2 cm/s tap in
     about 20 ms at the design noise), where noise alone takes the sum there about once in
     hours (``_JUMP_DRIFT`` half a deviation per sample, ``_JUMP_THRESHOLD`` twelve). At the
-    crossing it returns the jump the innovations imply: the position error now and the speed
-    that built it since the sum left zero (at least the jump's: the sum leaves zero after the
-    jump, not before); then it starts again."""
+    crossing it returns the speed that built the position error since the sum left zero (at
+    least the jump's: the sum leaves zero after the jump, not before) and the samples since;
+    then it starts again."""
 
     def __init__(self) -> None:
         self.sums = [0.0, 0.0]  # up, down
         self.since = [0, 0]  # samples since each left zero
 
     def step(self, innovation_m: float, std_m: float, period_s: float = 1e-3
-             ) -> tuple[float, float] | None:
+             ) -> tuple[float, int] | None:
         z = innovation_m / std_m
         for side, signed in enumerate((z, -z)):
             total = self.sums[side] + signed - _JUMP_DRIFT
@@ -131,9 +136,9 @@ class JumpDetector:
         side = 0 if self.sums[0] >= self.sums[1] else 1
         if self.sums[side] <= _JUMP_THRESHOLD:
             return None
-        elapsed_s = self.since[side] * period_s
+        samples = self.since[side]
         self.sums, self.since = [0.0, 0.0], [0, 0]
-        return innovation_m, innovation_m / elapsed_s
+        return innovation_m / (samples * period_s), samples
 
 
 class WindowedLeastSquares:
@@ -779,6 +784,24 @@ def filter_step(
 
 
 @dataclass(frozen=True)
+class _FilterInput:
+    """One filter step's inputs: run again from another state after a jump (_admit_jump)."""
+
+    state: Vec
+    covariance: Mat
+    rows: FilterRows
+    drive_v: float
+    measured: tuple[float, float]
+    ball_noise_var: float
+
+    def run(self) -> tuple[Vec, Mat, tuple[float, float]]:
+        return filter_step(
+            self.rows, self.state, self.covariance, self.drive_v, self.measured,
+            self.ball_noise_var,
+        )
+
+
+@dataclass(frozen=True)
 class _CycleRows:
     """A design's matrices the cycle uses, as tuples of floats (made once a design)."""
 
@@ -1003,6 +1026,10 @@ class ReplanningController:
     gamma_resets: int = field(init=False, default=0)  # the filter's γ given up (_filter_gamma)
     jumps: int = field(init=False, default=0)  # the ball's speed jumps admitted (_admit_jump)
     _jumps: JumpDetector = field(init=False, default_factory=lambda: JumpDetector())
+    # the filter's last steps, for a jump to run it again from before (_admit_jump)
+    _recent: deque[_FilterInput] = field(
+        init=False, default_factory=lambda: deque(maxlen=_JUMP_LOOKBACK)
+    )
     _last_drive_v: float = field(init=False, default=0.0)
     _theta: list[float] = field(init=False, default_factory=list)
     _position: list[float] = field(init=False, default_factory=list)
@@ -1239,29 +1266,36 @@ class ReplanningController:
                 abs(self.design.identified.gamma) * s.encoder_step_rad / math.sqrt(12.0),
             )
             ball_noise_var = ball_noise**2
-        state, self._covariance, innovation = filter_step(
-            self._rows().filter, (*self.estimate.tolist(), self._gamma_error),
-            self._covariance, self._last_drive_v, y, ball_noise_var,
+        step = _FilterInput(
+            (*self.estimate.tolist(), self._gamma_error), self._covariance, self._rows().filter,
+            self._last_drive_v, y, ball_noise_var,
         )
+        self._recent.append(step)
+        state, self._covariance, innovation = step.run()
         self.estimate = np.array(state[:4])
         self._gamma_error = state[4]
         jump = self._jumps.step(*innovation)
         if jump is not None:
             self._admit_jump(*jump)
 
-    def _admit_jump(self, position_m: float, speed_m_s: float) -> None:
-        """The ball's speed jumped (a tap): the filter's covariance of (ẋ, x) grows by the
-        jump the innovations show, so the next samples, not the model, say where the ball
-        is and how fast it goes (at rest the model is trusted so much that a tap would take
+    def _admit_jump(self, speed_m_s: float, samples: int) -> None:
+        """The ball's speed jumped (a tap) about ``samples`` ago, by at most ``speed_m_s``:
+        the filter runs again over the samples since, from its state before them with the
+        speed's variance grown by that much, so that those samples, not the model, say how
+        fast the ball goes now (at rest the model is trusted so much that a tap would take
         the filter a second to believe, and its γ error would take the blame meanwhile)."""
         self.jumps += 1
-        rows = [list(row) for row in self._covariance]
-        added = ((speed_m_s * speed_m_s, speed_m_s * position_m),
-                 (speed_m_s * position_m, position_m * position_m))
-        for i, a in enumerate((2, 3)):
-            for j, b in enumerate((2, 3)):
-                rows[a][b] += added[i][j]
-        self._covariance = tuple(tuple(row) for row in rows)
+        recent = list(self._recent)
+        start = max(0, len(recent) - samples - _JUMP_LOOKBACK_MARGIN)
+        first = recent[start]
+        grown = [list(row) for row in first.covariance]
+        grown[2][2] += speed_m_s * speed_m_s
+        state, covariance = first.state, tuple(tuple(row) for row in grown)
+        for step in recent[start:]:
+            state, covariance, _ = replace(step, state=state, covariance=covariance).run()
+        self.estimate = np.array(state[:4])
+        self._gamma_error = state[4]
+        self._covariance = covariance
 
     def _learn(self) -> None:
         s = self.settings
