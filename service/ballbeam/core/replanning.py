@@ -493,6 +493,11 @@ class Settings:
     prior_relative_std: float = 0.12
     prior_deadzone_v: float = 0.2
     prior_deadzone_std_v: float = 0.12
+    # The range the controller is for: the weakest motor (of the prior's gain) and the widest
+    # dead zone. The drive's margins never assume a plant worse than this, so the first plan
+    # (on the prior alone) drives as hard as the weakest plant in range can.
+    weakest_motor_gain: float = 0.8
+    widest_deadzone_v: float = 0.4
     # What the identified model leaves out, as the observer's process noise beyond the
     # identified gains' own uncertainty: drive [V] and ball acceleration [m/s²].
     unmodelled_drive_v: float = 0.05
@@ -591,7 +596,7 @@ def _design(identified: Identified, s: Settings, position_noise_m: float) -> _De
         K = np.zeros(4)
         K[:2] = dlqr(Ad[:2, :2], Bd[:2], s.track_q[:2], s.track_r)[0]
     K_t, P_t = dlqr(Ad, Bd, s.terminal_q, s.terminal_r)
-    drive_max = U - identified.deadzone_v - z * identified.drive_std(U)
+    drive_max = _drive_max(identified, s)
     # Tracker's reserve: z σ of the drive the estimate's noise puts into the correction.
     reserve = z * math.sqrt(float(K @ observer.P_estimate @ K))
     headroom = s.headroom_v if s.reshape else 0.0
@@ -660,6 +665,17 @@ def _design(identified: Identified, s: Settings, position_noise_m: float) -> _De
         guard=guard,
         reserve_v=reserve,
     )
+
+
+def _drive_max(identified: Identified, s: Settings) -> float:
+    """The drive a full command gives at least [V of drive, in the identified α's units]: its
+    lower confidence bound, or the weakest plant's in range where that is higher (a
+    Gaussian's z σ reaches past a bounded range: the prior's 3σ is a motor at 64 %)."""
+    U = s.voltage_limit_v
+    statistical = U - identified.deadzone_v - s.confidence_z * identified.drive_std(U)
+    weakest_alpha = s.weakest_motor_gain * s.prior_alpha
+    in_range = (U - s.widest_deadzone_v) * weakest_alpha / identified.alpha
+    return max(statistical, min(in_range, U - identified.deadzone_v))
 
 
 # --- the cycle's arithmetic in plain floats ------------------------------------------------
@@ -1023,7 +1039,6 @@ class ReplanningController:
     reshaped: int = field(init=False, default=0)
     cold_plans: int = field(init=False, default=0)
     near_plans: int = field(init=False, default=0)
-    gamma_resets: int = field(init=False, default=0)  # the filter's γ given up (_filter_gamma)
     jumps: int = field(init=False, default=0)  # the ball's speed jumps admitted (_admit_jump)
     _jumps: JumpDetector = field(init=False, default_factory=lambda: JumpDetector())
     # the filter's last steps, for a jump to run it again from before (_admit_jump)
@@ -1220,7 +1235,10 @@ class ReplanningController:
             gamma_error = 0.0
             if s.estimate_gamma:  # γ is the filter's: the design takes it, the state re-based
                 gamma_error = self._gamma_error
-                identified = self._filter_gamma(identified)
+                identified = replace(
+                    identified, gamma=d.identified.gamma + gamma_error,
+                    gamma_std=math.sqrt(self._covariance[4][4]),
+                )
             self.ball_ls.noise_var = self.position_noise_m**2
             self._request_design(
                 DesignRequest(self.cycle, identified, s, gamma_error, self.position_noise_m)
@@ -1233,25 +1251,6 @@ class ReplanningController:
         self._last_drive_v = _dead_zone(command, d.identified.deadzone_v)
         self.cycle += 1
         return record
-
-    def _filter_gamma(self, identified: Identified) -> Identified:
-        """The plant with the filter's γ, unless the filter and the windows disagree beyond
-        ``confidence_z`` of their deviations: the filter learns γ from every sample, so a
-        motion its model cannot explain (a tap: a jump of the ball's speed) it takes for a
-        gain error, where the windows' χ² test leaves that window out. Then γ is the
-        windows', and the filter's γ error starts again from their deviation."""
-        filter_gamma = self.design.identified.gamma + self._gamma_error
-        filter_std = math.sqrt(self._covariance[4][4])
-        apart = abs(filter_gamma - identified.gamma)
-        if apart <= self.settings.confidence_z * math.hypot(filter_std, identified.gamma_std):
-            return replace(identified, gamma=filter_gamma, gamma_std=filter_std)
-        self.gamma_resets += 1
-        rows = [list(row) for row in self._covariance]
-        for i in range(4):
-            rows[i][4] = rows[4][i] = 0.0
-        rows[4][4] = identified.gamma_std**2
-        self._covariance = tuple(tuple(row) for row in rows)
-        return identified
 
     def _filter(self, y: tuple[float, float]) -> None:
         """One Kalman step on (θ, θ̇, ẋ, x, δγ): ẍ = (γ̂ + δγ)·θ, δγ constant."""
