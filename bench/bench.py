@@ -219,12 +219,15 @@ def bench_lockstep(duration_s: float) -> list[dict[str, Any]]:
     return rows
 
 
-# Lock-step's frames: sensor and two truth frames out of the plant, one command back.
+# Lock-step's frames: sensor and two truth frames out of the plant, one command back; plain,
+# or authenticated as a run on this bus is by default (the same MACs made and checked).
 FLOOR_PATTERNS = {
-    "bare ping-pong (1 frame + 1), blocking": (1, False),
-    "our pattern (3 frames + 1), blocking": (3, False),
-    "bare ping-pong (1 frame + 1), polling": (1, True),
-    "our pattern (3 frames + 1), polling": (3, True),
+    "bare ping-pong (1 frame + 1), blocking": (1, False, False),
+    "our pattern (3 frames + 1), blocking": (3, False, False),
+    "our pattern, authenticated, blocking": (3, False, True),
+    "bare ping-pong (1 frame + 1), polling": (1, True, False),
+    "our pattern (3 frames + 1), polling": (3, True, False),
+    "our pattern, authenticated, polling": (3, True, True),
 }
 
 
@@ -232,8 +235,8 @@ def bench_exchange_floor(cycles: int) -> list[dict[str, Any]]:
     """The same bus with nothing but the frames: how fast lock-step could ever go."""
     bus = load_config(PAPER, []).bus
     return [
-        {"pattern": pattern, **exchange_floor(bus, cycles, plant_frames, poll)}
-        for pattern, (plant_frames, poll) in FLOOR_PATTERNS.items()
+        {"pattern": pattern, **exchange_floor(bus, cycles, plant_frames, poll, authenticated)}
+        for pattern, (plant_frames, poll, authenticated) in FLOOR_PATTERNS.items()
     ]
 
 

@@ -22,6 +22,7 @@ from typing import Any
 import can
 
 from ballbeam.config import BusSection
+from ballbeam.protocol.secoc import FrameAuthenticator
 from ballbeam.runtime.bus import (
     free_udp_port,
     isolated_group,
@@ -59,30 +60,59 @@ def _receive(opened: can.BusABC, poll: bool, timeout_s: float) -> can.Message | 
     return None
 
 
-def _plant_side(bus: BusSection, cycles: int, plant_frames: int, poll: bool, cpu_s: Any) -> None:
+class _Frames:
+    """Frames as the pattern's runs make and judge them: plain 8-byte data, or (``secret``)
+    authenticated as a run's are (protocol/secoc.py: a MAC and freshness on every frame sent,
+    every frame heard judged, a peer's by ``verify`` and one's own echo by ``own_frame``)."""
+
+    def __init__(self, secret: bytes | None) -> None:
+        self.auth = FrameAuthenticator(secret) if secret is not None else None
+
+    def make(self, arbitration_id: int, cycle: int) -> can.Message:
+        payload = struct.pack("<Q", cycle)
+        if self.auth is None:
+            return can.Message(arbitration_id=arbitration_id, data=payload, is_extended_id=False)
+        return can.Message(
+            arbitration_id=arbitration_id, data=self.auth.protect(arbitration_id, payload),
+            is_extended_id=False, is_fd=True,
+        )
+
+    def cycle_of(self, message: can.Message, own_id: int) -> int | None:
+        """The cycle a heard frame carries; None for one this side sent (its echo) or one
+        that fails its judgement."""
+        data = bytes(message.data)
+        if self.auth is not None:
+            if message.arbitration_id == own_id:
+                self.auth.own_frame(own_id, data)
+                return None
+            if self.auth.verify(message.arbitration_id, data) != "ok":
+                return None
+        elif message.arbitration_id == own_id:
+            return None
+        return int(struct.unpack_from("<Q", data)[0])
+
+
+def _plant_side(
+    bus: BusSection, cycles: int, plant_frames: int, poll: bool, secret: bytes | None,
+    cpu_s: Any,
+) -> None:
     """Send this cycle's frames, wait for the command that answers them, next cycle; puts
     the CPU time all that took on ``cpu_s``."""
     opened = open_bus(bus)
+    frames_of = _Frames(secret)
     started_cpu_s = time.process_time()
     try:
         for cycle in range(cycles):
-            payload = struct.pack("<Q", cycle)
-            frames = [
-                can.Message(arbitration_id=PLANT_BASE_ID + i, data=payload, is_extended_id=False)
-                for i in range(plant_frames)
-            ]
             answered = False
             while not answered:
-                for frame in frames:
-                    opened.send(frame)
+                for i in range(plant_frames):  # made again for each send, as a run's are
+                    opened.send(frames_of.make(PLANT_BASE_ID + i, cycle))
                 resend_at = time.monotonic() + RESEND_AFTER_S
                 while not answered and time.monotonic() < resend_at:
                     message = _receive(opened, poll, RESEND_AFTER_S)
-                    answered = (
-                        message is not None
-                        and message.arbitration_id == COMMAND_ID
-                        and struct.unpack("<Q", message.data)[0] == cycle
-                    )
+                    if message is None or message.arbitration_id != COMMAND_ID:
+                        continue  # (a plant frame's own echo is not judged: none is needed)
+                    answered = frames_of.cycle_of(message, own_id=-1) == cycle
         cpu_s.put(time.process_time() - started_cpu_s)
     finally:
         opened.shutdown()
@@ -94,6 +124,7 @@ def _controller_side(
     plant_frames: int,
     poll: bool,
     plant: multiprocessing.process.BaseProcess,
+    frames_of: _Frames,
 ) -> tuple[float, float, int]:
     """Answer every complete set of plant frames with one command; (wall seconds, CPU
     seconds, resends)."""
@@ -117,43 +148,41 @@ def _controller_side(
         silent_since = time.monotonic()
         if started is None:
             started, started_cpu_s = time.perf_counter(), time.process_time()
-        if message.arbitration_id == COMMAND_ID:
+        frame_cycle = frames_of.cycle_of(message, own_id=COMMAND_ID)
+        if frame_cycle is None:
             continue  # our own command, handed back by the bus
-        frame_cycle = struct.unpack("<Q", message.data)[0]
         if frame_cycle < cycle:  # our answer was lost and the plant asks again
             if message.arbitration_id == PLANT_BASE_ID:
                 resends += 1
-                opened.send(_command(frame_cycle))
+                opened.send(frames_of.make(COMMAND_ID, frame_cycle))
             continue
         heard.add(message.arbitration_id)
         if len(heard) == plant_frames:
-            opened.send(_command(cycle))
+            opened.send(frames_of.make(COMMAND_ID, cycle))
             heard.clear()
             cycle += 1
     assert started is not None
     return time.perf_counter() - started, time.process_time() - started_cpu_s, resends
 
 
-def _command(cycle: int) -> can.Message:
-    return can.Message(
-        arbitration_id=COMMAND_ID, data=struct.pack("<Q", cycle), is_extended_id=False
-    )
-
-
-def exchange_floor(bus: BusSection, cycles: int, plant_frames: int, poll: bool) -> dict[str, Any]:
+def exchange_floor(
+    bus: BusSection, cycles: int, plant_frames: int, poll: bool, authenticated: bool = False
+) -> dict[str, Any]:
     """Microseconds per lock-step cycle of bare frame exchange, the speed that caps at 1 kHz,
-    and the CPU each side spends a cycle (polling: all of it, by construction)."""
+    and the CPU each side spends a cycle (polling: all of it, by construction);
+    ``authenticated``: every frame made and judged as an authenticated run's are."""
     bus = _private_bus(bus)
     opened = open_bus(bus)  # open before the plant side sends, so no first frame is missed
     plant_cpu_s = _CONTEXT.Queue()
+    secret = os.urandom(32) if authenticated else None  # a bench's own, never a run's
     try:
         plant = _CONTEXT.Process(
-            target=_plant_side, args=(bus, cycles, plant_frames, poll, plant_cpu_s)
+            target=_plant_side, args=(bus, cycles, plant_frames, poll, secret, plant_cpu_s)
         )
         plant.start()
         try:
             elapsed_s, controller_cpu_s, resends = _controller_side(
-                opened, cycles, plant_frames, poll, plant
+                opened, cycles, plant_frames, poll, plant, _Frames(secret)
             )
             plant_cpu_per_cycle_us = plant_cpu_s.get(timeout=GIVE_UP_S) / cycles * 1e6
         finally:
@@ -166,6 +195,7 @@ def exchange_floor(bus: BusSection, cycles: int, plant_frames: int, poll: bool) 
     return {
         "plant_frames": plant_frames,
         "poll": poll,
+        "authenticated": authenticated,
         "cycles": cycles,
         "cycle_us": cycle_us,
         "ceiling_x_realtime_at_1khz": 1000.0 / cycle_us,

@@ -24,14 +24,19 @@ def floors() -> ModuleType:
 
 
 @pytest.mark.bus
-@pytest.mark.parametrize(("plant_frames", "poll"), [(1, False), (3, True)])
+@pytest.mark.parametrize(
+    ("plant_frames", "poll", "authenticated"),
+    [(1, False, False), (3, True, False), (3, False, True)],
+)
 def test_exchange_floor_answers_every_cycle(
-    floors: ModuleType, plant_frames: int, poll: bool
+    floors: ModuleType, plant_frames: int, poll: bool, authenticated: bool
 ) -> None:
     started = time.monotonic()
     row = floors.exchange_floor(
-        load_config(PAPER).bus, cycles=300, plant_frames=plant_frames, poll=poll
+        load_config(PAPER).bus, cycles=300, plant_frames=plant_frames, poll=poll,
+        authenticated=authenticated,
     )
+    assert row["authenticated"] is authenticated
     elapsed_s = time.monotonic() - started
     # It returned, so every cycle was answered (a silent side raises). The timed part lies
     # inside the call, and one thread cannot use more CPU than the wall time it ran.
@@ -39,6 +44,25 @@ def test_exchange_floor_answers_every_cycle(
     assert 0 < row["controller_cpu_us_per_cycle"] <= row["cycle_us"] * 1.05
     assert row["plant_cpu_us_per_cycle"] > 0
     assert row["command_resends"] >= 0
+
+
+def test_the_authenticated_floor_makes_and_judges_frames_as_a_run_does(
+    floors: ModuleType,
+) -> None:
+    """A frame of the authenticated floor is a run's SecOC frame (24 bytes, CAN FD); the peer
+    with the secret reads its cycle, one with another secret refuses it, and a side's own frame
+    heard back is its echo, not a cycle."""
+    secret = bytes(range(32))
+    plant, controller = floors._Frames(secret), floors._Frames(secret)
+    frame = plant.make(floors.PLANT_BASE_ID, 41)
+    assert frame.is_fd and len(frame.data) == 24
+    assert controller.cycle_of(frame, own_id=floors.COMMAND_ID) == 41
+    assert floors._Frames(bytes(32)).cycle_of(frame, own_id=floors.COMMAND_ID) is None
+    command = controller.make(floors.COMMAND_ID, 41)
+    assert controller.cycle_of(command, own_id=floors.COMMAND_ID) is None
+    assert plant.cycle_of(command, own_id=-1) == 41
+    plain = floors._Frames(None).make(floors.PLANT_BASE_ID, 7)
+    assert not plain.is_fd and floors._Frames(None).cycle_of(plain, own_id=-1) == 7
 
 
 def test_exchange_floor_keeps_to_a_private_interface_local_group(floors: ModuleType) -> None:
