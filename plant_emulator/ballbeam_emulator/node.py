@@ -418,32 +418,32 @@ class PlantEmulator:
             return
         state = self.peer_link.state()
         if state == "run_over" and not stop.is_set():
-            self.voltage_v = 0.0
-            self.lookahead_v = ()
-            self.pending.clear()
+            self._drop_drive()
             stop.set("run_over")
             log.info("the daemon's run is over: stopping")
             return
         if state == "gone" and self.launcher_pid is not None and os.getppid() != self.launcher_pid:
             # The launcher died too (killed with the daemon): no one is left to stop this
             # process, which would otherwise run on alone; it stops with 0 V.
-            self.voltage_v = 0.0
-            self.lookahead_v = ()
-            self.pending.clear()
+            self._drop_drive()
             stop.set("launcher_gone")
             log.warning("the daemon and its launcher are gone: stopping")
             return
         # Once: a command heard since (a restarted daemon, by hand) is obeyed as usual.
         if state != "gone" or self.counters.peer_lost:
             return
-        self.voltage_v = 0.0
-        self.lookahead_v = ()
-        self.pending.clear()
+        self._drop_drive()
         self.watchdog_zeroed = True
         self.counters.peer_lost += 1
         self.command_check.reset()
         log.warning("peer link closed: the daemon is gone; voltage zeroed at monotonic %d ns",
                     time.monotonic_ns())
+
+    def _drop_drive(self) -> None:
+        """0 V from now on: the command in force, its look-ahead and what waits to act."""
+        self.voltage_v = 0.0
+        self.lookahead_v = ()
+        self.pending.clear()
 
     def _take_last_commands(self, message: can.Message | None, lockstep: bool) -> None:
         """The daemon's last frames, already on the bus when it said the run is over (its last
@@ -563,6 +563,4 @@ class PlantEmulator:
 
     def stop(self) -> None:
         """Leave the plant safe: zero volts."""
-        self.voltage_v = 0.0
-        self.lookahead_v = ()
-        self.pending.clear()
+        self._drop_drive()
