@@ -28,8 +28,9 @@ Each 1 ms cycle:
   confidence bound.
 * **Plan**: minimum-time arcs (``planning.arcs``) of the *identified* model, in drive units
   (the voltage past the dead zone). The usable drive is (5 V · α̂ − ĉ − z·σ) / α̂: the lower
-  confidence bound of the full-voltage drive, less a reserve for the tracker sized from the
-  noise its correction carries. Every 10 ms the remaining plan is re-solved warm from the
+  confidence bound of the full-voltage drive (or the weakest plant's in range, where that is
+  higher: the prior alone is broader than the range), less a reserve for the tracker sized
+  from the noise its correction carries. Every 10 ms the remaining plan is re-solved warm from the
   plan's own servo state and the estimated ball (the servo's small errors are the tracker's).
   A re-plan that adds arcs (a detour) is taken only when the ball is off by far more than the
   estimate's noise; a tap or a new target is far, and is planned from the state then.
@@ -39,6 +40,9 @@ Each 1 ms cycle:
   design. What the model leaves out of the ball's acceleration is taken in proportion to |θ|
   (``ball_noise_with_angle``): at rest the estimate is as quiet as the encoder allows, and the
   terminal regulator needs no noise threshold.
+  A jump of the ball's speed the model does not allow (a tap) is found by a CUSUM of the
+  position innovations (``JumpDetector``), and the filter runs again over the samples since
+  with the speed's variance grown by it (``_admit_jump``).
 * **Re-shaping** (``reshape``, off: measured, not kept): where a time-optimal re-plan of the
   same arcs has no root, the remaining arcs' inputs move within a headroom.
 * **Track**: drive = plan drive + K (plan state − estimate), K a discrete LQR of the identified
@@ -116,8 +120,9 @@ class JumpDetector:
     """A two-sided CUSUM of the filter's normalised position innovations: a jump of the
     ball's speed the model does not allow (a tap) makes them grow in proportion to the time
     since, and the sum crosses its threshold within tens of milliseconds (a 2 cm/s tap in
-    about 20 ms at the design noise), where noise alone takes the sum there about once in
-    hours (``_JUMP_DRIFT`` half a deviation per sample, ``_JUMP_THRESHOLD`` twelve). At the
+    about 30 ms at the design noise), where noise, and an estimate lagging the ball by less
+    than the drift, do not take it there (``_JUMP_DRIFT``: one and a half deviations a
+    sample; ``_JUMP_THRESHOLD``: twelve; docs/decisions.md has the measurements). At the
     crossing it returns the speed that built the position error since the sum left zero (at
     least the jump's: the sum leaves zero after the jump, not before) and the samples since;
     then it starts again."""
@@ -1273,7 +1278,7 @@ class ReplanningController:
         state, self._covariance, innovation = step.run()
         self.estimate = np.array(state[:4])
         self._gamma_error = state[4]
-        jump = self._jumps.step(*innovation)
+        jump = self._jumps.step(*innovation, s.period_s)
         if jump is not None:
             self._admit_jump(*jump)
 
