@@ -63,6 +63,7 @@ import bisect
 import math
 from collections import deque
 from dataclasses import dataclass, field, replace
+from typing import NamedTuple
 
 import numpy as np
 import scipy.linalg
@@ -804,9 +805,10 @@ def filter_step(
     return new_state, symmetric, (r1 / gp, math.sqrt(s11) / gp)
 
 
-@dataclass(frozen=True)
-class _FilterInput:
-    """One filter step's inputs: run again from another state after a jump (_admit_jump)."""
+class _FilterInput(NamedTuple):
+    """One filter step's inputs: run again from another state after a jump (_admit_jump).
+    A named tuple: one is made every cycle (a frozen dataclass sets each field through
+    ``object.__setattr__``)."""
 
     state: Vec
     covariance: Mat
@@ -1296,7 +1298,7 @@ class ReplanningController:
         grown[2][2] += speed_m_s * speed_m_s
         state, covariance = first.state, tuple(tuple(row) for row in grown)
         for step in recent[start:]:
-            state, covariance, _ = replace(step, state=state, covariance=covariance).run()
+            state, covariance, _ = step._replace(state=state, covariance=covariance).run()
         self.estimate = np.array(state[:4])
         self._gamma_error = state[4]
         self._covariance = covariance
