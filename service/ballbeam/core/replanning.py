@@ -60,6 +60,7 @@ Each 1 ms cycle:
 from __future__ import annotations
 
 import bisect
+import copy
 import math
 from collections import deque
 from dataclasses import dataclass, field, replace
@@ -286,17 +287,16 @@ class NoiseEstimate:
         self.floor_var_m2 = floor_m**2
         self.windows = 0
         self.rejected = 0
-        # Imported with the law, before its run (in a cycle the import stalls it for a second),
-        # not with this module: every daemon imports the module, whichever law it runs.
-        from scipy.stats import f as f_distribution
-
-        self._f_quantile = f_distribution.isf
 
     def add(self, sum_squares_m2: float, dof: int) -> bool:
+        # Imported here, not with this module: every daemon imports the module, whichever law
+        # it runs, and windows are learnt by the planner (``identify``), never in a cycle.
+        from scipy.stats import f as f_distribution
+
         if dof <= 0:
             return False
         ratio = sum_squares_m2 / dof / self.variance_m2
-        if ratio > self._f_quantile(_OUTLIER_TAIL, dof, self.dof):
+        if ratio > f_distribution.isf(_OUTLIER_TAIL, dof, self.dof):
             self.rejected += 1
             return False
         self.sum_squares_m2 += sum_squares_m2
@@ -854,6 +854,115 @@ class _CycleRows:
         )
 
 
+# (time [s], σ̂ [m], its relative standard deviation, the σ the design uses [m]) of a noise
+# window (and of the prior, at 0)
+NoiseWindow = tuple[float, float, float, float]
+
+
+@dataclass
+class Identification:
+    """What the windows have taught (the motor's and the ball's least squares, the position
+    noise), and where the next windows start, as sample indices of the run.
+
+    The planner learns it, not the cycle: each window is a QR or an SVD (and the noise's an F
+    quantile), milliseconds on a loaded machine, where the cycle has one. A design request
+    carries the samples since the windows of the identification the law holds; its answer
+    carries the identification they give (:func:`identify`, on a copy)."""
+
+    motor: WindowedLeastSquares
+    ball: WindowedLeastSquares
+    noise: NoiseEstimate
+    servo_from: int = 0
+    ball_from: int = 0
+    noise_from: int = 0
+    learnt_cycles: int = 0  # the cycles whose samples are learnt: 0 .. learnt_cycles − 1
+
+    @classmethod
+    def prior(cls, s: Settings) -> Identification:
+        rel = s.prior_relative_std
+        prior_c = s.prior_alpha * s.prior_deadzone_v
+        motor = WindowedLeastSquares(
+            np.array([s.prior_pole_per_s, s.prior_alpha, prior_c]),
+            np.array([
+                rel * s.prior_pole_per_s,
+                rel * s.prior_alpha,
+                math.hypot(s.prior_alpha * s.prior_deadzone_std_v, rel * prior_c),
+            ]),
+            s.encoder_step_rad / math.sqrt(12.0),
+        )
+        noise = NoiseEstimate(
+            s.position_noise_prior_m, s.position_noise_prior_dof, s.adc_step_m / math.sqrt(12.0)
+        )
+        ball = WindowedLeastSquares(
+            np.array([s.prior_gamma]), np.array([rel * abs(s.prior_gamma)]),
+            noise.upper_m(s.confidence_z),
+        )
+        return cls(motor, ball, noise)
+
+    @property
+    def first_needed(self) -> int:
+        """The first sample a window still to come needs."""
+        return min(self.servo_from, self.ball_from, self.noise_from)
+
+    def position_noise_m(self, s: Settings) -> float:
+        """The position noise σ a design assumes: the estimate's upper confidence bound."""
+        return self.noise.upper_m(s.confidence_z)
+
+    def identified(self, s: Settings) -> Identified:
+        a, alpha, c = self.motor.mean
+        return Identified(
+            pole_per_s=float(max(a, 1.0)),
+            alpha=float(max(alpha, 1.0)),
+            deadzone_v=float(min(max(c / alpha, 0.0), s.voltage_limit_v / 2)),
+            gamma=float(self.ball.mean[0]),
+            covariance_motor=self.motor.covariance,
+            gamma_std=math.sqrt(float(self.ball.covariance[0, 0])),
+        )
+
+    def learn(
+        self, s: Settings, theta_rad: Vec, position_m: Vec, command_v: Vec, first_sample: int,
+        through_cycle: int,
+    ) -> list[NoiseWindow]:
+        """The windows that the cycles ``learnt_cycles`` .. ``through_cycle`` complete, in the
+        order the cycles complete them. The samples (θ and x of each cycle, the command of
+        each but the last) are the run's from index ``first_sample``. At each re-design's
+        cycle the ball's windows are re-weighted by the noise then, from the next on."""
+        def window(values: Vec, start: int, end: int) -> np.ndarray:
+            return np.array(values[start - first_sample : end - first_sample])
+
+        noise_windows: list[NoiseWindow] = []
+        for cycle in range(self.learnt_cycles, through_cycle + 1):
+            if cycle > 1 and (cycle - 1) % s.identify_every == 0:
+                self.ball.noise_var = self.position_noise_m(s) ** 2
+            k = cycle + 1  # samples so far
+            # servo windows: samples servo_from .. k − 1 with the commands between them
+            if k - self.servo_from > s.servo_window:
+                commands = window(command_v, self.servo_from, k - 1)
+                if np.all(np.abs(commands) >= s.identify_above_v):
+                    self.motor.add(*servo_window(
+                        window(theta_rad, self.servo_from, k), commands, s.period_s
+                    ))
+                self.servo_from = k - 1
+            if k - self.ball_from >= s.ball_window:
+                self.ball.add(*ball_window(
+                    window(theta_rad, self.ball_from, k), window(position_m, self.ball_from, k),
+                    s.period_s,
+                ))
+                self.ball_from = k
+            if k - self.noise_from >= s.noise_window:
+                self.noise.add(*noise_window(
+                    window(theta_rad, self.noise_from, k), window(position_m, self.noise_from, k),
+                    s.period_s,
+                ))
+                noise_windows.append((
+                    k * s.period_s, self.noise.std_m, self.noise.relative_std,
+                    self.position_noise_m(s),
+                ))
+                self.noise_from = k
+        self.learnt_cycles = through_cycle + 1
+        return noise_windows
+
+
 @dataclass(frozen=True)
 class PlanRequest:
     """What the law would pass to the planner at its step ``cycle``: the state, target,
@@ -897,29 +1006,75 @@ class PlanAnswer:
 
 @dataclass(frozen=True)
 class DesignRequest:
-    """A re-design the law wants: the plant as identified at its step ``cycle`` (γ the
-    filter's then, ``gamma_error`` of it its own error state, re-based when the design is
-    taken)."""
+    """A re-design the law wants at its step ``cycle``: the identification it holds, the
+    samples since that one's windows (from the run's sample ``first_sample``: θ and x through
+    ``cycle``, the commands before it), and (estimate_gamma) γ as the filter has it then with
+    its σ, ``gamma_error`` of it the filter's own error state, re-based when the design is
+    taken."""
 
     cycle: int
-    identified: Identified
     settings: Settings
+    identification: Identification
+    first_sample: int
+    theta_rad: Vec
+    position_m: Vec
+    command_v: Vec
+    filter_gamma: tuple[float, float] | None = None  # (γ, its σ)
     gamma_error: float = 0.0
-    position_noise_m: float = 2e-4  # the noise level the design is for
 
 
 @dataclass(frozen=True)
 class DesignAnswer:
+    """The design of the request of ``request_cycle``, and the identification it is of
+    (with the noise windows learnt for it)."""
+
     request_cycle: int
     design: _Design
+    identification: Identification
+    noise_windows: tuple[NoiseWindow, ...] = ()
+
+
+class Learnt(NamedTuple):
+    """What a design request's samples teach: the identification, its noise windows, the
+    plant as identified and the noise level a design is for."""
+
+    identification: Identification
+    noise_windows: tuple[NoiseWindow, ...]
+    identified: Identified
+    position_noise_m: float
+
+
+def identify(request: DesignRequest) -> Learnt:
+    """The request's samples learnt, on a copy of its identification."""
+    s = request.settings
+    identification = copy.deepcopy(request.identification)
+    noise_windows = identification.learn(
+        s, request.theta_rad, request.position_m, request.command_v, request.first_sample,
+        request.cycle,
+    )
+    identified = identification.identified(s)
+    if request.filter_gamma is not None:  # γ is the filter's
+        gamma, gamma_std = request.filter_gamma
+        identified = replace(identified, gamma=gamma, gamma_std=gamma_std)
+    return Learnt(
+        identification, tuple(noise_windows), identified, identification.position_noise_m(s)
+    )
 
 
 def solve_design_request(request: DesignRequest) -> DesignAnswer:
-    """The design (observer, tracker, terminal set, guard) of the identified plant. Pure."""
-    return DesignAnswer(
-        request.cycle,
-        _design(request.identified, request.settings, request.position_noise_m),
-    )
+    """The identification of the request's samples and the design (observer, tracker,
+    terminal set, guard) of the plant it identifies. Pure."""
+    learnt = identify(request)
+    design = _design(learnt.identified, request.settings, learnt.position_noise_m)
+    return DesignAnswer(request.cycle, design, learnt.identification, learnt.noise_windows)
+
+
+def answer_with_design(request: DesignRequest, design: _Design) -> DesignAnswer:
+    """The answer to ``request`` with ``design`` (a replay's: the run's recorded one) in
+    place of its own: only the identification is learnt again (its last bits are this
+    machine's LAPACK's, and reach the run only through designs, which are the run's)."""
+    learnt = identify(request)
+    return DesignAnswer(request.cycle, design, learnt.identification, learnt.noise_windows)
 
 
 def solve_request(request: PlanRequest | DesignRequest) -> PlanAnswer | DesignAnswer:
@@ -1036,6 +1191,7 @@ class ReplanningController:
     initial_state: np.ndarray
     target_m: float = 0.0
     design: _Design = field(init=False)
+    identification: Identification = field(init=False)  # as of the design in force
     estimate: np.ndarray = field(init=False)
     plan: ArcPlan | None = field(init=False, default=None)
     plan_start_cycle: int = field(init=False, default=0)
@@ -1053,11 +1209,12 @@ class ReplanningController:
         init=False, default_factory=lambda: deque(maxlen=_JUMP_LOOKBACK)
     )
     _last_drive_v: float = field(init=False, default=0.0)
+    # the samples (θ, x, command) from the run's sample _samples_from on: those the next
+    # design request carries to the identification's windows
     _theta: list[float] = field(init=False, default_factory=list)
     _position: list[float] = field(init=False, default_factory=list)
     _command: list[float] = field(init=False, default_factory=list)
-    _servo_from: int = field(init=False, default=0)
-    _ball_from: int = field(init=False, default=0)
+    _samples_from: int = field(init=False, default=0)
     _gamma_error: float = field(init=False, default=0.0)  # the filter's δγ (estimate_gamma)
     # the filter's covariance of (θ, θ̇, ẋ, x, δγ), rows of floats (estimate_gamma)
     _covariance: Mat = field(init=False, default=())
@@ -1072,37 +1229,17 @@ class ReplanningController:
     design_outstanding: DesignRequest | None = field(init=False, default=None)
     design_issued: DesignRequest | None = field(init=False, default=None)
     _sampler: _PlanSampler | None = field(init=False, default=None)
-    _noise_from: int = field(init=False, default=0)
-    # (time [s], σ̂ [m], its relative standard deviation, the σ the design uses [m]) at the
-    # start and after each noise window
-    noise_history: list[tuple[float, float, float, float]] = field(
-        init=False, default_factory=list
-    )
+    # the prior's and each noise window's, as the designs taken learnt them
+    noise_history: list[NoiseWindow] = field(init=False, default_factory=list)
 
     def __post_init__(self) -> None:
         s = self.settings
-        rel = s.prior_relative_std
-        prior_c = s.prior_alpha * s.prior_deadzone_v
-        self.motor_ls = WindowedLeastSquares(
-            np.array([s.prior_pole_per_s, s.prior_alpha, prior_c]),
-            np.array([
-                rel * s.prior_pole_per_s,
-                rel * s.prior_alpha,
-                math.hypot(s.prior_alpha * s.prior_deadzone_std_v, rel * prior_c),
-            ]),
-            s.encoder_step_rad / math.sqrt(12.0),
-        )
-        self.noise = NoiseEstimate(
-            s.position_noise_prior_m, s.position_noise_prior_dof, s.adc_step_m / math.sqrt(12.0)
-        )
-        self.noise_history.append(
-            (0.0, self.noise.std_m, self.noise.relative_std, self.position_noise_m)
-        )
-        self.ball_ls = WindowedLeastSquares(
-            np.array([s.prior_gamma]), np.array([rel * abs(s.prior_gamma)]),
+        self.identification = Identification.prior(s)
+        self.noise_history.append((
+            0.0, self.identification.noise.std_m, self.identification.noise.relative_std,
             self.position_noise_m,
-        )
-        self.design = _design(self._identified(), s, self.position_noise_m)
+        ))
+        self.design = _design(self.identification.identified(s), s, self.position_noise_m)
         self.estimate = np.array(self.initial_state, dtype=float)
 
     def _rows(self) -> _CycleRows:
@@ -1112,26 +1249,14 @@ class ReplanningController:
             rows = self._cycle_rows = _CycleRows.of(self.design, self.settings.period_s)
         return rows
 
-    def _identified(self) -> Identified:
-        a, alpha, c = self.motor_ls.mean
-        cov = self.motor_ls.covariance
-        return Identified(
-            pole_per_s=float(max(a, 1.0)),
-            alpha=float(max(alpha, 1.0)),
-            deadzone_v=float(min(max(c / alpha, 0.0), self.settings.voltage_limit_v / 2)),
-            gamma=float(self.ball_ls.mean[0]),
-            covariance_motor=cov,
-            gamma_std=math.sqrt(float(self.ball_ls.covariance[0, 0])),
-        )
-
     @property
     def identified(self) -> Identified:
         return self.design.identified
 
     @property
     def position_noise_m(self) -> float:
-        """The position noise σ the design assumes: the estimate's upper confidence bound."""
-        return self.noise.upper_m(self.settings.confidence_z)
+        """The position noise σ the next design assumes (the identification's, as taken)."""
+        return self.identification.position_noise_m(self.settings)
 
     def set_target(self, target_m: float) -> None:
         self.target_m = float(target_m)
@@ -1196,6 +1321,13 @@ class ReplanningController:
         self.design_outstanding = None
         self._gamma_error -= request.gamma_error
         self.design = answer.design
+        self.identification = answer.identification
+        self.noise_history.extend(answer.noise_windows)
+        # the samples no window to come needs
+        done = self.identification.first_needed - self._samples_from
+        if done > 0:
+            del self._theta[:done], self._position[:done], self._command[:done]
+            self._samples_from += done
         return True
 
     def _plan_request(self, kind: str, state: np.ndarray) -> PlanRequest:
@@ -1236,20 +1368,8 @@ class ReplanningController:
             )
         self._theta.append(theta_rad)
         self._position.append(position_m)
-        self._learn()
         if self.cycle and self.cycle % s.identify_every == 0:
-            identified = self._identified()
-            gamma_error = 0.0
-            if s.estimate_gamma:  # γ is the filter's: the design takes it, the state re-based
-                gamma_error = self._gamma_error
-                identified = replace(
-                    identified, gamma=d.identified.gamma + gamma_error,
-                    gamma_std=math.sqrt(self._covariance[4][4]),
-                )
-            self.ball_ls.noise_var = self.position_noise_m**2
-            self._request_design(
-                DesignRequest(self.cycle, identified, s, gamma_error, self.position_noise_m)
-            )
+            self._request_design(self._design_request())
             d = self.design
         record = self._drive()
         command = self._compensate(record.plan_drive_v)
@@ -1284,6 +1404,24 @@ class ReplanningController:
         if jump is not None:
             self._admit_jump(*jump)
 
+    def _design_request(self) -> DesignRequest:
+        """A re-design from the samples since the identification's windows (γ the filter's,
+        with estimate_gamma: the design takes it, and the filter's state is re-based)."""
+        s = self.settings
+        first = self.identification.first_needed
+        offset = first - self._samples_from
+        filter_gamma, gamma_error = None, 0.0
+        if s.estimate_gamma:
+            gamma_error = self._gamma_error
+            filter_gamma = (
+                self.design.identified.gamma + gamma_error, math.sqrt(self._covariance[4][4])
+            )
+        return DesignRequest(
+            self.cycle, s, self.identification, first, tuple(self._theta[offset:]),
+            tuple(self._position[offset:]), tuple(self._command[offset:]), filter_gamma,
+            gamma_error,
+        )
+
     def _admit_jump(self, speed_m_s: float, samples: int) -> None:
         """The ball's speed jumped (a tap) about ``samples`` ago, by at most ``speed_m_s``:
         the filter runs again over the samples since, from its state before them with the
@@ -1302,35 +1440,6 @@ class ReplanningController:
         self.estimate = np.array(state[:4])
         self._gamma_error = state[4]
         self._covariance = covariance
-
-    def _learn(self) -> None:
-        s = self.settings
-        k = len(self._theta)
-        # servo windows: samples from _servo_from .. k-1 with the commands between them
-        if k - self._servo_from > s.servo_window:
-            start = self._servo_from
-            commands = np.array(self._command[start : k - 1])
-            thetas = np.array(self._theta[start:k])
-            if np.all(np.abs(commands) >= s.identify_above_v):
-                self.motor_ls.add(*servo_window(thetas, commands, s.period_s))
-            self._servo_from = k - 1
-        if k - self._ball_from >= s.ball_window:
-            start = self._ball_from
-            self.ball_ls.add(
-                *ball_window(
-                    np.array(self._theta[start:k]), np.array(self._position[start:k]), s.period_s
-                )
-            )
-            self._ball_from = k
-        if k - self._noise_from >= s.noise_window:
-            start = self._noise_from
-            self.noise.add(*noise_window(
-                np.array(self._theta[start:k]), np.array(self._position[start:k]), s.period_s
-            ))
-            self.noise_history.append((
-                k * s.period_s, self.noise.std_m, self.noise.relative_std, self.position_noise_m
-            ))
-            self._noise_from = k
 
     def _error(self) -> Vec:
         e0, e1, e2, e3 = self.estimate.tolist()

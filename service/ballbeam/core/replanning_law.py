@@ -41,6 +41,7 @@ from ballbeam.core.replanning import (
     PlanRequest,
     ReplanningController,
     Settings,
+    answer_with_design,
     solve_design_request,
 )
 from ballbeam.core.task import Task
@@ -77,6 +78,9 @@ class ReplanningLaw:
     ) -> None:
         if plan_delay_cycles < 1:
             raise ValueError("a plan takes effect one cycle after its request at the soonest")
+        # The identification's noise test, imported before the run, not by a cycle that must
+        # learn windows itself (a daemon whose planner is lost): the import takes a second.
+        import scipy.stats  # noqa: F401
         self.task = task
         self.encoder_step_rad = encoder_step_rad
         self.adc_step_m = adc_step_m
@@ -272,7 +276,7 @@ class ReplanningLaw:
             if isinstance(request, DesignRequest):
                 # the run's design (a log from before has none: made again from the request)
                 self.offer(
-                    DesignAnswer(request.cycle, taken.design_made)
+                    answer_with_design(request, taken.design_made)
                     if taken.design_made is not None
                     else solve_design_request(request)
                 )

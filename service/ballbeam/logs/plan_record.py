@@ -29,6 +29,7 @@ from ballbeam.core.planning.arcs import ArcPlan
 from ballbeam.core.replanning import Identified, _Design
 from ballbeam.errors import LogFormatError
 from ballbeam.logs.reader import RunLog
+from ballbeam.logs.recorder import encode_json
 
 PLANS = "/plans"
 _FLOAT_LISTS = ("input_v", "duration_s_each", "start")
@@ -56,8 +57,11 @@ PLAN_SCHEMA = {
 }
 
 
-def plan_message(taken: PlanTaken, wait_ns: int | None = None) -> dict[str, Any]:
-    """The ``/plans`` message of an answer taken."""
+def plan_message(
+    taken: PlanTaken, wait_ns: int | None = None, made: bool = True
+) -> dict[str, Any]:
+    """The ``/plans`` message of an answer taken (``made``: with its design; a design's
+    encoding made elsewhere, :func:`design_json`, is joined to it by the recording)."""
     message: dict[str, Any] = {
         "cycle": int(taken.cycle),
         "request_cycle": int(taken.request_cycle),
@@ -65,7 +69,7 @@ def plan_message(taken: PlanTaken, wait_ns: int | None = None) -> dict[str, Any]
     }
     if taken.design:
         message["design"] = True
-        if taken.design_made is not None:
+        if made and taken.design_made is not None:
             message["made"] = encode_design(taken.design_made)
     if wait_ns is not None:
         message["wait_ns"] = int(wait_ns)
@@ -164,6 +168,11 @@ def encode_design(design: _Design) -> dict[str, Any]:
     encoded = _encode(design)
     assert isinstance(encoded, dict)
     return encoded
+
+
+def design_json(design: _Design) -> bytes:
+    """:func:`encode_design` as the JSON text of a ``/plans`` message's ``made``."""
+    return encode_json(encode_design(design))
 
 
 def decode_design(value: object) -> _Design:

@@ -311,7 +311,8 @@ class Recorder:
         never raises.
 
         ``values`` is a tuple in field order (fastest) or a mapping by field name; for a JSON
-        channel, a JSON-able mapping. Values that do not fit the schema are counted in
+        channel, a JSON-able mapping, or its encoding (bytes, :func:`encode_json`'s) made
+        where it costs the loop nothing. Values that do not fit the schema are counted in
         :attr:`rejected`. When ``queue_size`` messages are already waiting in memory, or
         after a write error or close, the message is dropped and counted in :attr:`dropped`.
         """
@@ -322,7 +323,12 @@ class Recorder:
             if not 0 <= log_time_ns < 1 << 63:
                 # int64 on the way back out (numpy), though MCAP stores uint64.
                 raise ValueError(f"log_time_ns {log_time_ns} is outside 0..2**63")
-            data = handle.schema.pack(values) if handle.schema is not None else encode_json(values)
+            if handle.schema is not None:
+                data = handle.schema.pack(values)
+            elif isinstance(values, bytes):  # a JSON message encoded by its maker
+                data = values
+            else:
+                data = encode_json(values)
         except (ValueError, TypeError, OverflowError, RecursionError) as exc:
             with self._chunk_lock:
                 self._rejected += 1

@@ -9,7 +9,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from ballbeam.logs.plan_record import PLAN_SCHEMA, PLANS, plan_message
-from ballbeam.logs.recorder import ChannelHandle, Recorder
+from ballbeam.logs.recorder import ChannelHandle, Recorder, encode_json
 from ballbeam.logs.topics import (
     DISTURBANCE_SCHEMA,
     DISTURBANCES,
@@ -62,9 +62,20 @@ class RunRecording:
             "ball_velocity_change_m_s": change_m_s,
         })
 
-    def plan(self, log_time_ns: int, taken: PlanTaken, wait_ns: int | None = None) -> None:
-        """An answer of its planner the law took (``wait_ns``: request to answer, measured)."""
-        self.recorder.record(self._handles[PLANS], log_time_ns, plan_message(taken, wait_ns))
+    def plan(
+        self, log_time_ns: int, taken: PlanTaken, wait_ns: int | None = None,
+        made_json: bytes | None = None,
+    ) -> None:
+        """An answer of its planner the law took (``wait_ns``: request to answer, measured;
+        ``made_json``: a design's encoding, made where it was solved: writing one here
+        takes milliseconds of the cycle)."""
+        if made_json is None or not taken.design:
+            self.recorder.record(self._handles[PLANS], log_time_ns, plan_message(taken, wait_ns))
+            return
+        text = encode_json(plan_message(taken, wait_ns, made=False))
+        self.recorder.record(
+            self._handles[PLANS], log_time_ns, text[:-1] + b',"made":' + made_json + b"}"
+        )
 
     def _note(self, topic: str, log_time_ns: int, cycle: int, kind: str, detail: str) -> None:
         self.recorder.record(

@@ -22,18 +22,24 @@ from multiprocessing.connection import Connection, wait
 from ballbeam.core.replanning import (
     DesignAnswer,
     DesignRequest,
+    Identification,
     PlanAnswer,
     PlanRequest,
     Settings,
+    solve_design_request,
     solve_plan_request,
-    solve_request,
 )
 from ballbeam.errors import PlanningError
+from ballbeam.logs.plan_record import design_json
 
 log = logging.getLogger("ballbeam.planner")
 
 _PR_SET_PDEATHSIG = 1
 READY = "ready"  # the planner's first message: warmed up, answering
+# Encoded designs kept for answers not yet taken (one is outstanding at most; a few for
+# answers that come after their request was dropped, never taken).
+_DESIGNS_KEPT = 4
+
 # How long the daemon waits for its planner to end after closing the pipe (a solve in
 # progress finishes first) before it terminates it.
 CLOSE_WAIT_S = 1.0
@@ -55,12 +61,15 @@ def serve(connection: Connection, parent_pid: int) -> None:
                 request = connection.recv()
             except (EOFError, OSError):
                 return
+            reply: PlanAnswer | tuple[DesignAnswer, bytes]
             if isinstance(request, DesignRequest):  # its failure ends us: the daemon's then
-                answer: PlanAnswer | DesignAnswer = solve_request(request)
+                answer = solve_design_request(request)
+                # with its record's encoding: ~50 KB of JSON, milliseconds a cycle lacks
+                reply = (answer, design_json(answer.design))
             else:
-                answer = _answer_plan(request)
+                reply = _answer_plan(request)
             try:
-                connection.send(answer)
+                connection.send(reply)
             except (BrokenPipeError, OSError):
                 return
 
@@ -76,8 +85,9 @@ def _answer_plan(request: PlanRequest) -> PlanAnswer:
 
 
 def _warm_up() -> None:
-    """One cold plan of the design's model, so the run's first request does not pay for
-    the solver's imports and first calls (a second or more on a loaded machine)."""
+    """One cold plan of the design's model and one re-design from every kind of window, so
+    the run's first requests do not pay for the solvers' imports and first calls (a second
+    or more on a loaded machine, which lock-step would wait for)."""
     s = Settings()
     request = PlanRequest(
         0, "cold", (0.3, 0.0, 0.0, 0.1), 0.0, s.prior_pole_per_s, s.prior_alpha,
@@ -85,6 +95,11 @@ def _warm_up() -> None:
     )
     with contextlib.suppress(PlanningError):
         solve_plan_request(request)
+    cycles = max(s.servo_window, s.ball_window, s.noise_window, s.identify_every)
+    at_rest = (0.0,) * (cycles + 1)
+    solve_design_request(DesignRequest(
+        cycles, s, Identification.prior(s), 0, at_rest, at_rest, (1.0,) * cycles
+    ))
 
 
 def _die_with(parent_pid: int) -> None:
@@ -110,6 +125,8 @@ class PlannerProcess:
         child.close()  # only the planner holds its end: its death closes the pipe here
         self.sent_ns: dict[int, int] = {}  # request cycle → when it was sent (monotonic)
         self.alive = True
+        # id of a design answered → the design (so the id stays its) and its record's JSON
+        self._design_json: dict[int, tuple[object, bytes]] = {}
 
     def wait_ready(self, timeout_s: float) -> bool:
         """Wait until the planner is warmed up (its first message); False if it is not by
@@ -152,7 +169,14 @@ class PlannerProcess:
             wait([self._connection, self.process.sentinel], timeout_s)
         try:
             while self._connection.poll(0):
-                answer: PlanAnswer | DesignAnswer = self._connection.recv()
+                reply: PlanAnswer | tuple[DesignAnswer, bytes] = self._connection.recv()
+                if isinstance(reply, tuple):
+                    answer: PlanAnswer | DesignAnswer = reply[0]
+                    self._design_json[id(reply[0].design)] = (reply[0].design, reply[1])
+                    while len(self._design_json) > _DESIGNS_KEPT:  # answers never taken
+                        del self._design_json[next(iter(self._design_json))]
+                else:
+                    answer = reply
                 sent_ns = (
                     self.sent_ns.pop(answer.request_cycle, None)
                     if isinstance(answer, PlanAnswer) else None
@@ -164,6 +188,11 @@ class PlannerProcess:
         if not answers and not self.process.is_alive():
             self.alive = False
         return answers
+
+    def take_design_json(self, design: object) -> bytes | None:
+        """The encoding of ``design`` for its record, made by the planner (None: not its)."""
+        kept = self._design_json.pop(id(design), None)
+        return kept[1] if kept is not None and kept[0] is design else None
 
     def close(self) -> None:
         """Close the pipe (the planner ends on it), wait for it briefly, else terminate."""

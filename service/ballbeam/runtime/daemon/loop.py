@@ -18,12 +18,13 @@ import numpy as np
 
 from ballbeam.assembly import counts_per_measurement, plant_parameters, sensor_periods_per_cycle
 from ballbeam.config import Config
-from ballbeam.core.control import CycleOutput
+from ballbeam.core.control import CycleOutput, PlanTaken
 from ballbeam.core.law import ControlLaw
 from ballbeam.core.plant import SensorReading
 from ballbeam.core.replanning import PlanAnswer, solve_design_request
 from ballbeam.core.replanning_law import ReplanningLaw
 from ballbeam.errors import BallbeamError
+from ballbeam.logs.plan_record import design_json
 from ballbeam.logs.recording import RunRecording
 from ballbeam.logs.topics import (
     ESTIMATE,
@@ -135,6 +136,10 @@ class ControllerDaemon:
         self.replanning = law if isinstance(law, ReplanningLaw) else None
         self.planner = planner
         self._plan_waits: dict[int, int] = {}  # request cycle (the law's) → ns to its answer
+        # The starting design's record, encoded before the run (the planner encodes the rest)
+        self._first_design_json = (
+            design_json(self.replanning.controller.design) if self.replanning else None
+        )
         self._planner_failing = False
         self._planner_gone = False
         self.angle_per_count, self.position_per_count = counts_per_measurement(config)
@@ -288,13 +293,22 @@ class ControllerDaemon:
         for taken in output.adopted_plans:
             self._stats.plan_answers_taken += 1
             wait_ns = None if taken.design else self._plan_waits.pop(taken.request_cycle, None)
-            self.recording.plan(at_ns, taken, wait_ns)
+            self.recording.plan(at_ns, taken, wait_ns, self._design_json(taken))
         self._watch_theta(output.estimate[0])
         while self.taps_to_log and self.taps_to_log[0][0] <= cycle:
             tap_cycle, step, time_s, change_m_s = self.taps_to_log.pop(0)
             self.recording.tap(at_ns, tap_cycle, time_s, step, change_m_s)
 
     # -- the re-planning law's planner ---------------------------------------------------------
+    def _design_json(self, taken: PlanTaken) -> bytes | None:
+        """A design's record as encoded before the cycle (None: the recording encodes it)."""
+        if not taken.design or taken.design_made is None:
+            return None
+        if taken.cycle == 0 and taken.request_cycle == 0:
+            made, self._first_design_json = self._first_design_json, None
+            return made
+        return self.planner.take_design_json(taken.design_made) if self.planner else None
+
     def _take_plans(self) -> None:
         """Hand the law its planner's answers; lock-step waits for the one due at this cycle
         (so the run equals the offline one), real time never waits (an answer is taken at
