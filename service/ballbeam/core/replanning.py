@@ -1002,6 +1002,8 @@ class PlanAnswer:
     plan: ArcPlan | None
     counts: tuple[str, ...] = ()
     error: str | None = None
+    # the plan's arc boundaries, made where it is solved (the cycle only samples it)
+    sampler: _PlanSampler | None = field(default=None, compare=False)
 
 
 @dataclass(frozen=True)
@@ -1032,6 +1034,8 @@ class DesignAnswer:
     design: _Design
     identification: Identification
     noise_windows: tuple[NoiseWindow, ...] = ()
+    # the design's matrices as the cycle's tuples, made where it is solved
+    rows: _CycleRows | None = field(default=None, compare=False)
 
 
 class Learnt(NamedTuple):
@@ -1066,7 +1070,10 @@ def solve_design_request(request: DesignRequest) -> DesignAnswer:
     terminal set, guard) of the plant it identifies. Pure."""
     learnt = identify(request)
     design = _design(learnt.identified, request.settings, learnt.position_noise_m)
-    return DesignAnswer(request.cycle, design, learnt.identification, learnt.noise_windows)
+    return DesignAnswer(
+        request.cycle, design, learnt.identification, learnt.noise_windows,
+        _CycleRows.of(design, request.settings.period_s),
+    )
 
 
 def answer_with_design(request: DesignRequest, design: _Design) -> DesignAnswer:
@@ -1086,8 +1093,15 @@ def solve_request(request: PlanRequest | DesignRequest) -> PlanAnswer | DesignAn
 
 def solve_plan_request(request: PlanRequest) -> PlanAnswer:
     """The plan the law asked for: the solves (and the choice among them) it used to make
-    inside its cycle. Pure; PlanningError where the grid planner finds no plan is an answer
-    of None."""
+    inside its cycle, with the plan's sampler. Pure; PlanningError where the grid planner
+    finds no plan is an answer of None."""
+    answer = _solve_plan(request)
+    if answer.plan is None:
+        return answer
+    return replace(answer, sampler=_PlanSampler(answer.plan))
+
+
+def _solve_plan(request: PlanRequest) -> PlanAnswer:
     r = request
     params = _Params(r.pole_per_s, r.alpha, r.gamma)
     state = np.array(r.state)
@@ -1301,6 +1315,8 @@ class ReplanningController:
         if answer.plan is not None and not self.terminal:
             self.plan = answer.plan
             self.plan_start_cycle = request.cycle
+            if answer.sampler is not None:
+                self._sampler = answer.sampler
         return True
 
     def _request_design(self, request: DesignRequest) -> None:
@@ -1321,6 +1337,8 @@ class ReplanningController:
         self.design_outstanding = None
         self._gamma_error -= request.gamma_error
         self.design = answer.design
+        if answer.rows is not None:
+            self._cycle_rows = answer.rows
         self.identification = answer.identification
         self.noise_history.extend(answer.noise_windows)
         # the samples no window to come needs
