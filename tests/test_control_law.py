@@ -17,6 +17,8 @@ from ballbeam.config import load_config
 from ballbeam.core.control import PlanTaken
 from ballbeam.core.law import TrackerLaw
 from ballbeam.core.planning.arcs import plan_arcs
+from ballbeam.core.replanning import _sine_state
+from ballbeam.core.task import SineWave, flat_feedforward
 from ballbeam.evaluation.replay import verify
 from ballbeam.logs.plan_record import PLANS, plan_from_message, plan_message, recorded_plans
 from ballbeam.logs.reader import RunLog, read_log
@@ -52,7 +54,6 @@ def test_the_default_kind_is_the_tracker() -> None:
     ("overrides", "words"),
     [
         (("controller.kind='mpc'",), "'tracker' or 'replanning'"),
-        ((*REPLANNING, "task.sine={amplitude_m=0.04, period_s=10.0}"), "no sine tracking"),
         ((*REPLANNING, "run.mode='realtime'"), "lock-step only"),
     ],
 )
@@ -145,6 +146,43 @@ def test_offline_a_change_of_target_is_re_planned_to_rest_near_the_floor_from_th
     assert floor is not None
     assert rest_after_s <= 1.3 * floor.time_s, (rest_after_s, floor.time_s)
     assert float(np.max(trace.peak_abs_theta_rad)) <= config.limits.theta_rad + 1e-12
+
+
+def test_the_sines_flat_state_in_plain_floats_is_the_tasks_own() -> None:
+    """The law's sine reference (plain floats, ``replanning._sine_state``) equals the task's
+    flat outputs turned into state and drive by ``task.flat_feedforward`` (numpy)."""
+    sine = SineWave(0.04, 10.0, -0.02)
+    gamma, alpha, pole = -0.41218, 108.896, 58.466
+    times = np.linspace(0.0, 25.0, 101)
+    states, drives = flat_feedforward(sine.reference_at(times), gamma, alpha, pole)
+    for time_s, state, drive in zip(times, states, drives, strict=True):
+        ours, ours_drive = _sine_state((0.04, 10.0, -0.02), float(time_s), gamma, alpha, pole)
+        np.testing.assert_allclose(ours, state, rtol=1e-12, atol=1e-15)
+        assert ours_drive == pytest.approx(float(drive), rel=1e-12, abs=1e-15)
+
+
+@pytest.mark.parametrize("overrides", [
+    (),  # the paper's start and plant
+    ("initial.ball_position_m=-0.15", "initial.ball_velocity_m_s=0.1",  # rolling, far side
+     "plant.ball_gain_scale=1.2", "plant.motor_gain_scale=0.85", "plant.deadzone_v=0.3"),
+])
+def test_offline_a_sine_is_joined_and_followed_within_the_limits(
+    overrides: tuple[str, ...],
+) -> None:
+    """The 4 cm, 10 s sine: the ball joins it and follows it, within 1 mm and 0.3 mm RMS
+    from 3 s on (measured from the plant's truth against the sine itself), the servo within
+    its limit at every physics step, no voltage above 2 V after the join."""
+    config = load_config(PAPER, (
+        *REPLANNING, "task.sine={amplitude_m=0.04, period_s=10.0}", "run.duration_s=12.0",
+        *overrides,
+    ))
+    trace = run_offline(config).trace
+    time_s, x_m = trace.time_s, trace.true_states[:, 3]
+    error_m = x_m - (0.04 * np.sin(2.0 * math.pi / 10.0 * time_s))
+    assert float(np.max(np.abs(error_m[time_s >= 3.0]))) <= 1e-3
+    assert float(np.sqrt(np.mean(error_m[time_s >= 3.0] ** 2))) <= 3e-4
+    assert float(np.max(trace.peak_abs_theta_rad)) <= config.limits.theta_rad + 1e-12
+    assert float(np.max(np.abs(trace.voltage_v[time_s >= 3.0]))) <= 2.0
 
 
 # ---- over the bus, lock-step; replay -----------------------------------------------------------

@@ -47,6 +47,9 @@ class RunMetrics:
     input_tv_ratio: float | None = None  # Σ|Δu| / Σ|Δu_d|
     dither_hz: float | None = None  # sign changes of u per second over the last second
     largest_step_v: float | None = None  # largest |Δu| away from the plan's own switches
+    # RMS of x − x_r(t), the task's own reference, over the run's second half (a sine's
+    # tracking error once it is joined)
+    task_rms_mm: float | None = None
 
     def as_dict(self) -> dict[str, float | None]:
         return asdict(self)
@@ -265,6 +268,7 @@ def compute_metrics(
         largest_step_v=(
             None if reference_input_v is None else largest_step_v(voltage_v, reference_input_v)
         ),
+        task_rms_mm=1e3 * float(np.sqrt(np.mean(position[len(position) // 2 :] ** 2))),
     )
 
 

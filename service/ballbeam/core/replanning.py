@@ -836,6 +836,9 @@ class _CycleRows:
     P_terminal: Mat
     estimate_covariance: Mat
     ball_information: Mat  # (2, 2)
+    # the largest level of the terminal LQR's Lyapunov function on which its drive stays
+    # within the drive limit (a sine's terminal set)
+    unsaturated_level: float
 
     @classmethod
     def of(cls, d: _Design, period_s: float) -> _CycleRows:
@@ -851,7 +854,25 @@ class _CycleRows:
             L=_mat(d.L), K=_vec(d.K), K_terminal=_vec(d.K_terminal),
             P_terminal=_mat(d.P_terminal), estimate_covariance=_mat(d.estimate_covariance),
             ball_information=_mat(d.ball_information),
+            unsaturated_level=d.drive_max_v**2 / _inverse_quadratic(
+                _mat(d.P_terminal), _vec(d.K_terminal)
+            ),
         )
+
+
+def _inverse_quadratic(m: Mat, v: Vec) -> float:
+    """vᵀ M⁻¹ v for a symmetric positive definite M, by Cholesky in plain floats (a replay
+    makes the rows again from a recorded design: no LAPACK bits)."""
+    n = len(v)
+    lower = [[0.0] * n for _ in range(n)]
+    for i in range(n):
+        for j in range(i + 1):
+            total = m[i][j] - sum(lower[i][k] * lower[j][k] for k in range(j))
+            lower[i][j] = math.sqrt(total) if i == j else total / lower[j][j]
+    y: list[float] = []
+    for i in range(n):  # L y = v: vᵀ M⁻¹ v = |y|²
+        y.append((v[i] - sum(lower[i][k] * y[k] for k in range(i))) / lower[i][i])
+    return sum(value * value for value in y)
 
 
 # (time [s], σ̂ [m], its relative standard deviation, the σ the design uses [m]) of a noise
@@ -989,6 +1010,10 @@ class PlanRequest:
     reshape_max_v: float = 0.0
     headroom_v: float = 0.0
     cold_state: tuple[float, float, float, float] | None = None  # a detour's cold plan from
+    # (a sine) the plan ends where the sine is then: (amplitude m, period s, offset m), and
+    # the sine's time at the request's state
+    sine: tuple[float, float, float] | None = None
+    sine_time_s: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -1102,6 +1127,8 @@ def solve_plan_request(request: PlanRequest) -> PlanAnswer:
 
 
 def _solve_plan(request: PlanRequest) -> PlanAnswer:
+    if request.sine is not None and request.kind != "warm":
+        return _solve_to_sine(request)
     r = request
     params = _Params(r.pole_per_s, r.alpha, r.gamma)
     state = np.array(r.state)
@@ -1115,6 +1142,43 @@ def _solve_plan(request: PlanRequest) -> PlanAnswer:
         if found is not None:
             return PlanAnswer(r.cycle, found, ("near",))
     return _solve_cold(r, state)
+
+
+# A plan to a sine ends where the sine is when the plan ends: its duration and its end are
+# found together by fixed-point iteration (the sine moves little within a plan's change of
+# duration: a few iterations agree to a cycle).
+_SINE_PLAN_ITERATIONS = 4
+
+
+def _solve_to_sine(r: PlanRequest) -> PlanAnswer:
+    """A cold plan from the request's state to rest where the sine is at the plan's end (the
+    follower takes the sine's own speed from there)."""
+    assert r.sine is not None
+    duration_s = 0.0
+    answer = PlanAnswer(r.cycle, None)
+    for _ in range(_SINE_PLAN_ITERATIONS):
+        target_m = _sine_state(r.sine, r.sine_time_s + duration_s)[0][3]
+        answer = _solve_cold(replace(r, target_m=target_m, sine=None), np.array(r.state))
+        if answer.plan is None or abs(answer.plan.duration_s - duration_s) < 0.5 * 1e-3:
+            break
+        duration_s = answer.plan.duration_s
+    return answer
+
+
+def _sine_state(
+    sine: tuple[float, float, float], time_s: float, gamma: float = 1.0, alpha: float = 1.0,
+    pole_per_s: float = 0.0,
+) -> tuple[tuple[float, float, float, float], float]:
+    """The state (θ, θ̇, ẋ, x) and drive that hold the model on the sine at ``time_s``: its
+    flat outputs (θ = ẍ/γ, θ̇ = x⃛/γ, u = (θ̈ + aθ̇)/α with θ̈ = x⁗/γ), in plain floats."""
+    amplitude, period, offset = sine
+    w = 2.0 * math.pi / period
+    sin, cos = math.sin(w * time_s), math.cos(w * time_s)
+    theta = -amplitude * w * w * sin / gamma
+    theta_rate = -amplitude * w * w * w * cos / gamma
+    theta_accel = amplitude * w * w * w * w * sin / gamma
+    state = (theta, theta_rate, amplitude * w * cos, offset + amplitude * sin)
+    return state, (theta_accel + pole_per_s * theta_rate) / alpha
 
 
 def _solve_cold(r: PlanRequest, state: np.ndarray, counts: tuple[str, ...] = ()) -> PlanAnswer:
@@ -1153,6 +1217,9 @@ def _solve_warm(r: PlanRequest, params: _Params, from_state: np.ndarray) -> Plan
         if shaped is not None:
             return PlanAnswer(r.cycle, shaped, (*counts, "reshaped"))
     if (r.far or (r.moved and new is None)) and r.cold_state is not None:
+        if r.sine is not None:
+            detour = _solve_to_sine(replace(r, state=r.cold_state))
+            return replace(detour, counts=(*counts, *detour.counts))
         return _solve_cold(r, np.array(r.cold_state), counts)
     return PlanAnswer(r.cycle, None, counts)
 
@@ -1204,6 +1271,10 @@ class ReplanningController:
     settings: Settings
     initial_state: np.ndarray
     target_m: float = 0.0
+    # a sine to follow instead of a target: (amplitude m, period s, offset m); its time is
+    # ``sine_time_s``, which the caller sets before each step
+    sine: tuple[float, float, float] | None = None
+    sine_time_s: float = field(init=False, default=0.0)
     design: _Design = field(init=False)
     identification: Identification = field(init=False)  # as of the design in force
     estimate: np.ndarray = field(init=False)
@@ -1356,7 +1427,16 @@ class ReplanningController:
             pole_per_s=p.pole_per_s, alpha=p.alpha, gamma=p.gamma,
             drive_limit_v=d.drive_limit_v,
             theta_max_rad=self.settings.theta_limit_rad - self.settings.plan_theta_margin_rad,
+            sine=self.sine, sine_time_s=self.sine_time_s,
         )
+
+    def _reference(self) -> tuple[tuple[float, float, float, float], float]:
+        """What the terminal regulator holds the state on, and its drive: rest at the target,
+        or the sine's flat state now (the identified model's)."""
+        if self.sine is None:
+            return (0.0, 0.0, 0.0, self.target_m), 0.0
+        p = self.design.identified.params
+        return _sine_state(self.sine, self.sine_time_s, p.gamma, p.alpha, p.pole_per_s)
 
     def _clipped(self, state: np.ndarray | None) -> np.ndarray:
         """The state to plan from (default: the estimate), its angle inside the plan's."""
@@ -1461,11 +1541,20 @@ class ReplanningController:
 
     def _error(self) -> Vec:
         e0, e1, e2, e3 = self.estimate.tolist()
-        return (e0, e1, e2, e3 - self.target_m)
+        if self.sine is None:
+            return (e0, e1, e2, e3 - self.target_m)
+        r0, r1, r2, r3 = self._reference()[0]
+        return (e0 - r0, e1 - r1, e2 - r2, e3 - r3)
 
     def _in_terminal_set(self, factor: float = 1.0) -> bool:
+        """Inside the terminal set: at a target, where the regulator keeps the ball in the
+        rest band; on a sine, where its drive stays within the limit (the band is the
+        sine's to keep, not the set's)."""
         level = _quadratic4(self._rows().P_terminal, self._error())
-        return level <= factor * self.design.terminal_level
+        rows = self._rows()
+        return level <= factor * (
+            self.design.terminal_level if self.sine is None else rows.unsaturated_level
+        )
 
     def _left_terminal_set(self) -> bool:
         """Whether the state has left the terminal set grown by ``terminal_exit_factor`` (the
@@ -1480,13 +1569,19 @@ class ReplanningController:
         """A fresh plan from the estimate (or ``state``); ``near``: close to the target, where
         the four-arc guess solves it directly (no grid plan). A plan not found keeps the
         plan in force."""
-        self._request(self._plan_request("near" if near else "cold", self._clipped(state)))
+        kind = "near" if near and self.sine is None else "cold"
+        self._request(self._plan_request(kind, self._clipped(state)))
 
     def _elapsed(self) -> float:
         return (self.cycle - self.plan_start_cycle) * self.settings.period_s
 
     def _drive(self) -> CycleRecord:
         d = self.design
+        if self.sine is not None and not self.terminal and self._in_terminal_set():
+            # on a sine the regulator follows wherever its drive stays unsaturated: a plan
+            # (to rest where the sine will be) is for outside that set only
+            self.terminal = True
+            self._drop_plan()
         if self.terminal and self._left_terminal_set():
             self.terminal = False
             self._drop_plan()
@@ -1509,10 +1604,11 @@ class ReplanningController:
                 else:  # outside the terminal set: a (small) minimum-time move to it
                     self._plan_from_estimate(near=True)
                     plan = self.plan
-        if self.terminal:
+        if self.terminal or (plan is None and self.sine is not None):
+            # (a sine, its plan being solved: follow it meanwhile rather than drive nothing)
             drive = -_dot4(self._rows().K_terminal, self._error())
-            reference = np.array([0.0, 0.0, 0.0, self.target_m])
-            feedforward = 0.0
+            held, feedforward = self._reference()
+            reference = np.array(held)
         elif plan is None:  # no plan yet (it is being solved): nothing to track, no drive
             drive = 0.0
             reference = np.array([0.0, 0.0, 0.0, self.target_m])
@@ -1526,8 +1622,10 @@ class ReplanningController:
             drive = feedforward + _dot4(self._rows().K, error)
         if self.terminal and self.settings.rest_threshold:
             # at rest every drive smaller than the estimate's noise is a reaction to noise:
-            # a soft threshold (continuous) leaves it out
+            # a soft threshold (continuous) leaves it out (the sine's own drive is no reaction)
             drive = math.copysign(max(abs(drive) - self._ramp_v(), 0.0), drive)
+        if self.sine is not None and (self.terminal or plan is None):
+            drive += feedforward
         drive = guarded_voltage(d.guard, as_row4(self.estimate), drive)
         return CycleRecord(0.0, reference, drive, self.terminal, feedforward, self.estimate.copy())
 
@@ -1559,6 +1657,7 @@ class ReplanningController:
             far = _quadratic2(information, miss) > s.detour_sigmas**2
         self._request(replace(
             self._plan_request("warm", from_state),
+            target_m=plan.target_m,  # (a sine's plan ends where the sine was to be)
             plan=plan, elapsed_s=elapsed, far=bool(far), moved=moved, reshape=s.reshape,
             significant=_quadratic2(information, miss) > s.reshape_sigmas**2,
             reshape_max_v=d.reshape_max_v, headroom_v=d.headroom_v,

@@ -44,7 +44,7 @@ from ballbeam.core.replanning import (
     answer_with_design,
     solve_design_request,
 )
-from ballbeam.core.task import Task
+from ballbeam.core.task import SineWave, Task
 
 # A step of the task takes effect at the first cycle at or after its instant: the cycle's time
 # k·period is computed with rounding, so the instant is looked up this much later.
@@ -87,8 +87,13 @@ class ReplanningLaw:
         self.plan_delay_cycles = plan_delay_cycles
         self.planner = planner
         self.recorded = recorded
+        sine = (
+            (task.amplitude_m, task.period_s, task.offset_m) if isinstance(task, SineWave)
+            else None
+        )
         self.controller = ReplanningController(
-            settings, np.array(initial_state, dtype=float), target_m=task.target_at(0.0)
+            settings, np.array(initial_state, dtype=float), target_m=task.target_at(0.0),
+            sine=sine,
         )
         self.controller.deferred = True
         # The design the law starts with (its Riccati solutions are this machine's LAPACK's):
@@ -179,9 +184,12 @@ class ReplanningLaw:
             raise ValueError("the first control cycle needs a sensor reading")  # as the tracker
         if not self.started:
             self._first_cycle = self._cycle
-        target_m = self.task.target_at(self._cycle * self.period_s + _CYCLE_TIME_SLACK_S)
-        if target_m != controller.target_m:
-            controller.set_target(target_m)
+        if controller.sine is None:
+            target_m = self.task.target_at(self._cycle * self.period_s + _CYCLE_TIME_SLACK_S)
+            if target_m != controller.target_m:
+                controller.set_target(target_m)
+        else:
+            controller.sine_time_s = self._cycle * self.period_s
         self._take_answer()
         if reading is None:
             # No sample: the law is told what its estimate expects (a measurement that
