@@ -3,7 +3,8 @@ to any target. Pure (no I/O); ``controller.kind = "replanning"`` runs it (``repl
 A measured experiment, not yet at issue 27's bounds: docs/decisions.md ("the second
 candidate") has its figures and what is left.
 
-Each 1 ms cycle:
+Each 1 ms cycle (what needs a solve or a factorisation is asked of a planner: the plans, and
+with each re-design the identification's windows since the last, ``Identification``):
 
 * **Identification** (``WindowedLeastSquares``): the servo's α (volts → acceleration), its pole a
   and c = α·d (d the dead zone) from the encoder, and the ball's γ from the encoder and the
@@ -50,6 +51,9 @@ Each 1 ms cycle:
 * **Terminal regulator**: in the plan's last stroke, once the error is inside the terminal
   LQR's invariant ellipse (the Lyapunov level set on which its drive stays within the limit),
   the LQR takes over; it hands back to a fresh plan only if the state leaves a larger ellipse.
+* **A sine** (``sine``): the plan goes to rest where the sine will be when it ends; the
+  terminal regulator then holds the state on the sine's flat state with its drive (θ = ẍ/γ,
+  ...) wherever its drive stays unsaturated (that set, not the rest band's, is a sine's).
 * **Safety filter**: the angle barrier of ``guard`` (hard barrier only), built for the
   identified motor at its lower drive bound.
 * **Dead-zone compensation**: u = v + d̂·clip(v / w, −1, 1): a ramp through zero whose width w
