@@ -58,6 +58,7 @@ CORE_ALLOWED = (
     "scipy",
     "highspy",
     "math",
+    "copy",
     "dataclasses",
     "typing",
     "functools",

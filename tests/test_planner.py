@@ -18,7 +18,14 @@ import numpy as np
 import pytest
 
 from ballbeam.config import load_config
-from ballbeam.core.replanning import PlanRequest, Settings, solve_plan_request
+from ballbeam.core.replanning import (
+    DesignAnswer,
+    DesignRequest,
+    PlanAnswer,
+    PlanRequest,
+    Settings,
+    solve_plan_request,
+)
 from ballbeam.evaluation import replay
 from ballbeam.logs.plan_record import recorded_plans
 from ballbeam.logs.reader import read_log
@@ -151,6 +158,52 @@ class _FailingPlanner(PlannerProcess):
                 self.process.join(10.0)
             request = dataclasses.replace(request, state=(math.nan, 0.0, 0.0, 0.1))
         return super().send(request)  # type: ignore[arg-type]
+
+
+class _SlowPlanner(PlannerProcess):
+    """The daemon's planner, whose answer to the ``which``-th request it is sent reaches the
+    daemon only ``delay_s`` after it was sent (a solve that slow: a loaded machine)."""
+
+    def __init__(self, which: int, delay_s: float) -> None:
+        super().__init__()
+        self.which, self.delay_s, self.count = which, delay_s, 0
+        self.held_until = 0.0
+
+    def send(self, request: PlanRequest | DesignRequest) -> bool:
+        self.count += 1
+        if self.count == self.which:
+            self.held_until = time.monotonic() + self.delay_s
+        return super().send(request)
+
+    def receive(
+        self, timeout_s: float | None = 0.0
+    ) -> list[tuple[PlanAnswer | DesignAnswer, int]]:
+        if time.monotonic() < self.held_until:
+            time.sleep(min(timeout_s or 0.0, self.held_until - time.monotonic()))
+            return []
+        return super().receive(timeout_s)
+
+
+def test_lockstep_waiting_longer_than_the_freshness_window_refuses_no_frame(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A plan that takes longer than the frames' freshness window (1 s): lock-step waits for
+    it, and the frames the plant sends meanwhile (its resends) are judged while fresh, not
+    refused as stale when the wait ends; the run equals the offline one command for
+    command."""
+    monkeypatch.setattr(node, "PlannerProcess", lambda: _SlowPlanner(8, 1.5))
+    config = load_config(PAPER, (
+        *REPLANNING, "bus.interface='virtual'", f"bus.channel='bb-{secrets.token_hex(4)}'",
+        "run.duration_s=0.3",
+    ))
+    log_path = tmp_path / "run.mcap"
+    started = time.monotonic()
+    assert run_in_process(config, log_path) == "completed"
+    assert time.monotonic() - started > 1.5  # the wait happened
+    run_log = read_log(log_path)
+    faults = [m["kind"] for m in run_log.json_topics["/faults"].messages]
+    assert faults == [], faults
+    assert replay.verify(run_log).ok
 
 
 @pytest.mark.parametrize(("crash", "fault"), [(False, "planner_error"), (True, "planner_lost")])

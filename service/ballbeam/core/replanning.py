@@ -1155,14 +1155,14 @@ _SINE_PLAN_ITERATIONS = 4
 
 
 def _solve_to_sine(r: PlanRequest) -> PlanAnswer:
-    """A cold plan from the request's state to rest where the sine is at the plan's end (the
-    follower takes the sine's own speed from there)."""
-    assert r.sine is not None
+    """A plan (cold, or near: four arcs first) from the request's state to rest where the
+    sine is at the plan's end (the follower takes the sine's own speed from there)."""
+    assert r.sine is not None and r.kind != "warm"
     duration_s = 0.0
     answer = PlanAnswer(r.cycle, None)
     for _ in range(_SINE_PLAN_ITERATIONS):
         target_m = _sine_state(r.sine, r.sine_time_s + duration_s)[0][3]
-        answer = _solve_cold(replace(r, target_m=target_m, sine=None), np.array(r.state))
+        answer = _solve_plan(replace(r, target_m=target_m, sine=None))
         if answer.plan is None or abs(answer.plan.duration_s - duration_s) < 0.5 * 1e-3:
             break
         duration_s = answer.plan.duration_s
@@ -1222,7 +1222,7 @@ def _solve_warm(r: PlanRequest, params: _Params, from_state: np.ndarray) -> Plan
             return PlanAnswer(r.cycle, shaped, (*counts, "reshaped"))
     if (r.far or (r.moved and new is None)) and r.cold_state is not None:
         if r.sine is not None:
-            detour = _solve_to_sine(replace(r, state=r.cold_state))
+            detour = _solve_to_sine(replace(r, kind="near", state=r.cold_state))
             return replace(detour, counts=(*counts, *detour.counts))
         return _solve_cold(r, np.array(r.cold_state), counts)
     return PlanAnswer(r.cycle, None, counts)
@@ -1573,8 +1573,7 @@ class ReplanningController:
         """A fresh plan from the estimate (or ``state``); ``near``: close to the target, where
         the four-arc guess solves it directly (no grid plan). A plan not found keeps the
         plan in force."""
-        kind = "near" if near and self.sine is None else "cold"
-        self._request(self._plan_request(kind, self._clipped(state)))
+        self._request(self._plan_request("near" if near else "cold", self._clipped(state)))
 
     def _elapsed(self) -> float:
         return (self.cycle - self.plan_start_cycle) * self.settings.period_s

@@ -67,6 +67,8 @@ LATE_SAMPLE_CYCLES = 2
 PERIOD_OFFSET_AGREEMENT = 8
 # Lock-step, waiting for a plan that is due: how often the stop flag is looked at [s].
 PLAN_WAIT_POLL_S = 0.1
+# ... and how many frames it judges between two looks.
+TAKE_IN_WHILE_WAITING = 1000
 # A cycle reads its socket for half a period at most, so that a flood cannot hold the loop; a
 # daemon behind the stream reads on up to this share of the period [%] to catch up.
 CATCH_UP_SHARE = 80
@@ -331,6 +333,18 @@ class ControllerDaemon:
                 return
             if not must_wait or law.answer_due_cycle is None or self.stop.is_set():
                 return
+            self._take_in_while_waiting()
+
+    def _take_in_while_waiting(self) -> None:
+        """Waiting on the planner: judge what the bus brought meanwhile while it is fresh (an
+        authenticated frame is refused once it is older than the freshness window, and a
+        slow solve can outlast it). The intake alone: a resent sample gets no command
+        before the cycle it is for."""
+        for _ in range(TAKE_IN_WHILE_WAITING):  # bounded: a flood must not hold the wait
+            message = self._recv(0.0)
+            if message is None:
+                return
+            self.intake.handle(message, self.log_time_ns, self.law.cycle)
 
     def _send_plan_request(self) -> None:
         law = self.replanning
