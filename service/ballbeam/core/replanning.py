@@ -1554,8 +1554,8 @@ class ReplanningController:
         """Inside the terminal set: at a target, where the regulator keeps the ball in the
         rest band; on a sine, where its drive stays within the limit (the band is the
         sine's to keep, not the set's)."""
-        level = _quadratic4(self._rows().P_terminal, self._error())
         rows = self._rows()
+        level = _quadratic4(rows.P_terminal, self._error())
         return level <= factor * (
             self.design.terminal_level if self.sine is None else rows.unsaturated_level
         )
