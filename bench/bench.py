@@ -30,12 +30,12 @@ from ballbeam.assembly import (
     clear_design_caches,
     controller_design,
     make_plan,
-    physical_constants,
     run_offline,
 )
 from ballbeam.config import load_config
 from ballbeam.evaluation.summary import summarise
 from ballbeam.logs.reader import RunLog, read_log
+from ballbeam.plant_assembly import physical_constants
 from ballbeam.protocol.frames import SENSOR_ID
 from ballbeam.runtime.launcher import launch_run
 

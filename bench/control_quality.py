@@ -45,7 +45,6 @@ import numpy as np
 from ballbeam.assembly import (
     controller_design,
     design_key,
-    design_model,
     plant_floor,
     run_offline_with,
 )
@@ -53,6 +52,7 @@ from ballbeam.config import Config, load_config
 from ballbeam.core.floor import own_floor
 from ballbeam.core.metrics import first_entry_time, inside_from, outside_rest_band
 from ballbeam.errors import BallbeamError
+from ballbeam.plant_assembly import design_model
 
 REPO = Path(__file__).resolve().parents[1]
 PAPER = str(REPO / "configs" / "paper.toml")

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from ballbeam.assembly import plant_floor, plant_parameters
+from ballbeam.assembly import plant_floor
 from ballbeam.config import Config, load_config
 from ballbeam.core.metrics import (
     dither_hz,
@@ -33,6 +33,7 @@ from ballbeam.core.metrics import (
 )
 from ballbeam.core.replanning import ClosedLoopRun, Settings, run_closed_loop
 from ballbeam.errors import BallbeamError
+from ballbeam.plant_assembly import plant_parameters
 
 REPO = Path(__file__).resolve().parents[1]
 PAPER = str(REPO / "configs" / "paper.toml")

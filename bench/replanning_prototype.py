@@ -37,7 +37,6 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
-from ballbeam.assembly import plant_parameters
 from ballbeam.config import load_config
 from ballbeam.core.model import LinearModel, PhysicalConstants
 from ballbeam.core.observer import design_observer
@@ -46,6 +45,7 @@ from ballbeam.core.planning.lag_hold import _Params
 from ballbeam.core.planning.time_optimal import plan_time_optimal
 from ballbeam.core.plant import PlantPhysics, initial_noise, next_noise, read_sensors
 from ballbeam.errors import PlanningError
+from ballbeam.plant_assembly import plant_parameters
 
 PERIOD_S = 1e-3
 THETA_LIMIT_RAD = math.radians(52.0)

@@ -27,7 +27,6 @@ from typing import Any
 
 import numpy as np
 
-from ballbeam.assembly import plant_parameters
 from ballbeam.config import load_config
 from ballbeam.core import replanning as after
 from ballbeam.core.metrics import inside_from, outside_rest_band
@@ -38,6 +37,7 @@ from ballbeam.core.plant import (
     next_noise,
     read_sensors,
 )
+from ballbeam.plant_assembly import plant_parameters
 
 REPO = Path(__file__).resolve().parents[1]
 PAPER = str(REPO / "configs" / "paper.toml")

@@ -3,7 +3,8 @@
 ``rest_ratio`` divides the rest time by T*, the minimum time of the *design* model from the
 draw's start. A draw whose true plant is slower (ball gain < 1, motor gain < 1) cannot rest at
 that T* whatever the controller: its floor is the time-optimal planner with zero margins on the
-draw's true plant (the design model with the draw's gain scales, ``assembly.true_model``), under
+draw's true plant (the design model with the draw's gain scales,
+``plant_assembly.true_model``), under
 5 V less the motor's dead zone (what the motor gets at full command) and 52°, to rest at the
 0.5 mm rest band's near edge (the start moved 0.5 mm closer: x is a pure integrator of the
 linear model). T* of the true plant under the full 5 V, to the origin, is shown beside it.
@@ -27,11 +28,12 @@ import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from ballbeam.assembly import minimum_time_s, run_offline, true_model
+from ballbeam.assembly import minimum_time_s, run_offline
 from ballbeam.config import Config, load_config
 from ballbeam.core.metrics import REST_POSITION_M
 from ballbeam.core.planning.time_optimal import plan_time_optimal
 from ballbeam.errors import PlanningError
+from ballbeam.plant_assembly import true_model
 from ballbeam.studies.tune import load_tune_spec
 
 TARGET_CUT = 0.15  # issue 14: the tuned worst rest ratio at least 15 % below the default's

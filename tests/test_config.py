@@ -10,10 +10,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from ballbeam.assembly import physical_constants
 from ballbeam.config import Config, ModelSection, load_config, parse_override
 from ballbeam.core.model import PhysicalConstants
 from ballbeam.errors import ConfigError
+from ballbeam.plant_assembly import physical_constants
 
 from .conftest import CONFIGS
 

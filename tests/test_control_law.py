@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from ballbeam.assembly import control_law, design_model, plant_floor, run_offline
+from ballbeam.assembly import control_law, plant_floor, run_offline
 from ballbeam.config import load_config
 from ballbeam.core.control import PlanTaken
 from ballbeam.core.law import TrackerLaw
@@ -22,6 +22,7 @@ from ballbeam.core.task import SineWave, flat_feedforward
 from ballbeam.evaluation.replay import verify
 from ballbeam.logs.plan_record import PLANS, plan_from_message, plan_message, recorded_plans
 from ballbeam.logs.reader import RunLog, read_log
+from ballbeam.plant_assembly import design_model
 
 from .conftest import PAPER, ballbeam
 

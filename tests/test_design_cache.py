@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 
-from ballbeam import assembly
+from ballbeam import assembly, plant_assembly
 from ballbeam.config import load_config
 from ballbeam.core.control import ControllerDesign
 from ballbeam.core.model import LinearModel, as_row4
@@ -45,7 +45,7 @@ def test_kept_pieces_follow_the_config_they_were_made_for() -> None:
         "paper", ["tracker.rest_r=2.0", "observer.input_noise_v=0.7", "plan.theta_margin_deg=1"]
     )
     design = assembly.controller_design(changed)
-    model = LinearModel.from_constants(assembly.physical_constants(changed))
+    model = LinearModel.from_constants(plant_assembly.physical_constants(changed))
     rest, _ = stationary_gain(
         model, np.diag(changed.tracker.rest_q), np.array([[2.0]]), changed.controller.period_s
     )
@@ -58,7 +58,7 @@ def test_kept_pieces_follow_the_config_they_were_made_for() -> None:
         angle_noise_rad=changed.sensors.encoder_step_rad / math.sqrt(12.0),
         position_noise_m=math.hypot(
             assembly.DEFAULT_POSITION_NOISE_M,
-            changed.sensors.adc_step_m(assembly.physical_constants(changed).beam_length_m)
+            changed.sensors.adc_step_m(plant_assembly.physical_constants(changed).beam_length_m)
             / math.sqrt(12.0),
         ),
     )

@@ -10,13 +10,14 @@ import numpy as np
 import pytest
 import scipy.optimize
 
-from ballbeam.assembly import minimum_time_s, plant_floor, plant_parameters, true_model
+from ballbeam.assembly import minimum_time_s, plant_floor
 from ballbeam.config import load_config
 from ballbeam.core.floor import LINEAR, NONLINEAR_CHORD, chord_ball_gain, own_floor
 from ballbeam.core.model import LinearModel, PhysicalConstants
 from ballbeam.core.planning.rate_limited import plan_rate_limited
 from ballbeam.core.plant import PlantPhysics
 from ballbeam.errors import ConfigError, PlanningError
+from ballbeam.plant_assembly import plant_parameters, true_model
 
 from .conftest import PAPER
 

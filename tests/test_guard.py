@@ -288,9 +288,9 @@ def test_the_soft_limit_is_an_encoder_level_and_the_servo_rests_on_it_without_hu
 def closed_loop(config: Config, cycles: int) -> tuple[np.ndarray, np.ndarray]:
     """The paper run's commands and true servo angles: the emulator's physics (dead zone,
     encoder) under the controller's cycle, one period apart, from the state a run starts in."""
-    from ballbeam.assembly import plant_parameters
     from ballbeam.core.control import control_cycle, starting_state
     from ballbeam.core.plant import PlantPhysics, initial_noise, next_noise, read_sensors
+    from ballbeam.plant_assembly import plant_parameters
 
     design = controller_design(config)
     physics = PlantPhysics(plant_parameters(config))

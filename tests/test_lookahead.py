@@ -12,12 +12,7 @@ import math
 import numpy as np
 import pytest
 
-from ballbeam.assembly import (
-    controller_design,
-    plant_parameters,
-    run_cycles,
-    sensor_periods_per_cycle,
-)
+from ballbeam.assembly import controller_design, run_cycles
 from ballbeam.config import Config, load_config
 from ballbeam.core.control import (
     LOOKAHEAD_FLOOR,
@@ -38,6 +33,7 @@ from ballbeam.core.plant import (
     read_sensors,
 )
 from ballbeam.core.simulate import SimulationTrace, simulate_closed_loop
+from ballbeam.plant_assembly import plant_parameters, sensor_periods_per_cycle
 
 CONFIG = load_config(None, ["run.mode='realtime'", "run.duration_s=2.5"])
 

@@ -469,9 +469,9 @@ def test_highspy_gives_what_linprog_gives(
 def test_a_start_beyond_the_path_bound_leaves_it_at_full_voltage_first() -> None:
     """The paper's −52° start with a path inside ±51.5°: a lead-in at +U, then the minimum-time
     path from where it ends; the whole plan comes to rest and stays within ±52° throughout."""
-    from ballbeam.assembly import design_model
     from ballbeam.config import load_config
     from ballbeam.core.planning.time_optimal import plan_time_optimal_from_outside
+    from ballbeam.plant_assembly import design_model
 
     model = design_model(load_config(None))
     start = np.array([math.radians(-52.0), 0.0, 0.0, 0.195])

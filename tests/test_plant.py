@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose, assert_array_equal
 
-from ballbeam.assembly import plant_parameters
 from ballbeam.config import load_config
 from ballbeam.core.plant import (
     EmulatedPlant,
@@ -19,6 +18,7 @@ from ballbeam.core.plant import (
     read_sensors,
     tap_step,
 )
+from ballbeam.plant_assembly import plant_parameters
 
 
 def _params(**changes: object) -> EmulatedPlant:
@@ -123,9 +123,9 @@ def test_peak_angle_over_the_physics_steps_of_a_period() -> None:
     substeps: a servo driven to the limit and braked peaks between the period's ends."""
     import math
 
-    from ballbeam.assembly import plant_parameters
     from ballbeam.config import load_config
     from ballbeam.core.plant import PlantPhysics
+    from ballbeam.plant_assembly import plant_parameters
 
     for extra in ([], ["plant.nonlinear_ball=true"]):
         physics = PlantPhysics(plant_parameters(load_config(None, extra)))

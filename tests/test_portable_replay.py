@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from ballbeam.assembly import controller_design, design_model
+from ballbeam.assembly import controller_design
 from ballbeam.config import load_config
 from ballbeam.core import observer as matrix_observer
 from ballbeam.core.control import (
@@ -28,6 +28,7 @@ from ballbeam.core.control import (
 from ballbeam.core.plant import SensorReading
 from ballbeam.errors import LogFormatError
 from ballbeam.logs import design_record
+from ballbeam.plant_assembly import design_model
 
 from .conftest import REPO, ballbeam_argv
 

@@ -184,3 +184,23 @@ def test_the_readme_cluster_recipe_listens_on_loopback_only(tmp_path: Path) -> N
             except subprocess.TimeoutExpired:
                 os.killpg(process.pid, signal.SIGKILL)
                 process.wait()
+
+
+# What a process loads before its work begins is paid at every start: every run starts two
+# nodes, and the suite several hundred processes. The command line parses its arguments (and
+# refuses bad ones) before the config stack loads; the emulator designs nothing, so the
+# controller's design stack (SciPy's solvers, the planners) stays out of its imports.
+@pytest.mark.parametrize(
+    ("module", "absent"),
+    [
+        ("ballbeam.cli", ("numpy", "pydantic", "can", "scipy", "ballbeam.config")),
+        ("ballbeam_emulator.main", ("ballbeam.assembly", "ballbeam.core.tracker",
+                                    "ballbeam.core.planning", "scipy.optimize")),
+    ],
+)
+def test_a_process_start_loads_only_what_it_needs(module: str, absent: tuple[str, ...]) -> None:
+    code = (f"import sys, json; import {module}; "
+            "print(json.dumps(sorted(sys.modules)))")
+    loaded = json.loads(_python(code))
+    found = [name for name in loaded if any(name == a or name.startswith(a + ".") for a in absent)]
+    assert not found, f"importing {module} loads {found[:8]}"

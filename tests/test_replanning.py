@@ -10,7 +10,6 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from ballbeam.assembly import plant_parameters
 from ballbeam.config import load_config
 from ballbeam.core.plant import EmulatedPlant, PlantPhysics, read_sensors
 from ballbeam.core.replanning import (
@@ -23,6 +22,7 @@ from ballbeam.core.replanning import (
     run_closed_loop,
     servo_window,
 )
+from ballbeam.plant_assembly import plant_parameters
 
 PAPER = "configs/paper.toml"
 PERIOD_S = 1e-3

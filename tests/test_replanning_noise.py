@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from ballbeam.assembly import plant_parameters
 from ballbeam.config import load_config
 from ballbeam.core.metrics import dither_hz
 from ballbeam.core.plant import EmulatedPlant
 from ballbeam.core.replanning import NoiseEstimate, Settings, noise_window, run_closed_loop
+from ballbeam.plant_assembly import plant_parameters
 
 PAPER = "configs/paper.toml"
 PERIOD_S = 1e-3

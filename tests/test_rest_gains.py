@@ -117,9 +117,10 @@ def test_a_late_loop_does_not_learn_the_dead_zone(lateness_ns: int, learns: bool
     its probe raised the guard's latency allowance to 5 ms (so the guard's look-ahead covers
     the lateness): under load such a run had learnt 0.03 V for the plant's 0.1 V, and the ball
     went into a slow ±0.4 mm oscillation at rest. On time, it opens its windows as offline."""
-    from ballbeam.assembly import controller_design, plant_parameters
+    from ballbeam.assembly import controller_design
     from ballbeam.core.control import ControllerState, control_cycle
     from ballbeam.core.plant import PlantPhysics, initial_noise, next_noise, read_sensors
+    from ballbeam.plant_assembly import plant_parameters
 
     config = load_config(PAPER, [
         "run.mode='realtime'", "run.duration_s=1.0", "controller.theta_guard_latency_us=5000",

@@ -33,10 +33,10 @@ from dataclasses import astuple, dataclass
 import can
 import numpy as np
 
-from ballbeam.assembly import plant_parameters, sensor_periods_per_cycle
 from ballbeam.config import Config
 from ballbeam.core.plant import PlantPhysics, initial_noise, next_noise, read_sensors
 from ballbeam.errors import FrameError
+from ballbeam.plant_assembly import plant_parameters, sensor_periods_per_cycle
 from ballbeam.protocol.frames import (
     COUNTER_MODULUS,
     PLANT_STATUS_ID,

@@ -20,13 +20,15 @@ import threading
 from collections.abc import Iterator
 from importlib import metadata
 from pathlib import Path
-from typing import BinaryIO
+from typing import TYPE_CHECKING, BinaryIO
 
-from ballbeam.config import Config, load_config, resolve_config_path
 from ballbeam.errors import OutputExistsError, RecorderError
 from ballbeam.files import create_new, exists_message
 from ballbeam.protocol.secoc import RunKey
 from ballbeam.runtime.ticker import scheduled_realtime
+
+if TYPE_CHECKING:  # the config stack (pydantic, numpy) loads when a command reads a config
+    from ballbeam.config import Config
 
 log = logging.getLogger("ballbeam")
 
@@ -377,9 +379,13 @@ def secret_from_arguments(args: argparse.Namespace) -> RunKey | None:
 def resolve_config_argument(args: argparse.Namespace) -> None:
     """Turn ``args.config`` into the absolute path of the file it names: child processes and
     the log then get the file itself, wherever the name led."""
+    from ballbeam.config import resolve_config_path
+
     if getattr(args, "config", None):
         args.config = str(resolve_config_path(args.config).resolve())
 
 
 def config_from_arguments(args: argparse.Namespace) -> Config:
+    from ballbeam.config import load_config
+
     return load_config(args.config, args.overrides)

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import can
 import numpy as np
 
-from ballbeam.assembly import counts_per_measurement, plant_parameters, sensor_periods_per_cycle
+from ballbeam.assembly import counts_per_measurement
 from ballbeam.config import Config
 from ballbeam.core.control import CycleOutput, PlanTaken
 from ballbeam.core.law import ControlLaw
@@ -36,6 +36,7 @@ from ballbeam.logs.topics import (
     SensorRecord,
     TimingRecord,
 )
+from ballbeam.plant_assembly import plant_parameters, sensor_periods_per_cycle
 from ballbeam.protocol.frames import COUNTER_MODULUS, SENSOR_ID, CounterCheck, FrameContract
 from ballbeam.protocol.secoc import FrameAuthenticator
 from ballbeam.runtime.bus import recv_frame
