@@ -53,6 +53,7 @@ PRIMITIVES: dict[str, tuple[str, str, int]] = {
 }
 # Byte-like arrays pack from one bytes object ("8s") rather than eight ints.
 _BYTE_TYPES = frozenset({"byte", "uint8"})
+_PACKABLE_BYTES = (bytes, bytearray)  # what struct's "Ns" takes as it is
 
 # ROS 2 naming rules, so that every tool that validates .msg files accepts ours.
 _FIELD_NAME = re.compile(r"[a-z](?:_?[a-z0-9]+)*")
@@ -111,6 +112,7 @@ class StructSchema:
     packer: struct.Struct = field(init=False, repr=False, compare=False)
     _plan: tuple[tuple[int, int], ...] = field(init=False, repr=False, compare=False)
     _flat: bool = field(init=False, repr=False, compare=False)
+    _byte_fields: tuple[tuple[int, int], ...] | None = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         # Normalise lists to tuples so equal schemas compare and hash equal.
@@ -170,6 +172,11 @@ class StructSchema:
         object.__setattr__(self, "packer", struct.Struct("".join(fmt)))
         object.__setattr__(self, "_plan", tuple(plan))
         object.__setattr__(self, "_flat", all(kind == _SCALAR for kind, _ in plan))
+        # Scalars and byte arrays only (a CAN frame's record): packed in one call once each
+        # byte array is checked for its exact length (struct would pad or cut it silently).
+        object.__setattr__(self, "_byte_fields", tuple(
+            (index, count) for index, (kind, count) in enumerate(plan) if kind == _BYTES
+        ) if all(kind != _ARRAY for kind, _ in plan) else None)
 
     @property
     def field_names(self) -> tuple[str, ...]:
@@ -188,7 +195,7 @@ class StructSchema:
         other arrays take a sequence of N numbers. Raises ValueError on a wrong shape or a
         value out of the field's range.
         """
-        if isinstance(values, Mapping):
+        if not isinstance(values, tuple) and isinstance(values, Mapping):  # ABC check: slow
             try:
                 values = tuple(values[name] for name, _ in self.fields)
             except KeyError as exc:
@@ -197,6 +204,11 @@ class StructSchema:
             raise ValueError(f"{self.name}: expected {len(self._plan)} values, got {len(values)}")
         try:
             if self._flat:
+                return self.packer.pack(CDR_LE_HEADER, *values)
+            if self._byte_fields is not None and all(
+                type(values[index]) in _PACKABLE_BYTES and len(values[index]) == count
+                for index, count in self._byte_fields
+            ):
                 return self.packer.pack(CDR_LE_HEADER, *values)
             args: list[Any] = [CDR_LE_HEADER]
             for (kind, count), value in zip(self._plan, values, strict=True):
