@@ -42,12 +42,13 @@ def test_importing_the_package_leaves_the_environment_alone(module: str) -> None
 
 
 # The entry points as `ballbeam run` and a shell start them (the console script's module, and
-# both `python -m`), run far enough to import everything a node imports, then asked which BLAS
-# thread count the loaded library uses.
+# both `python -m`), run far enough to import everything a node imports (the command line loads
+# numpy only for a command that reads a config: here a plan), then asked which BLAS thread count
+# the loaded library uses.
 ENTRY_POINTS = {
-    "ballbeam command": "from ballbeam.entry import main; sys.argv = ['ballbeam', '--help']; "
-                        "main()",
-    "python -m ballbeam": "sys.argv = ['ballbeam', '--help']; "
+    "ballbeam command": f"from ballbeam.entry import main; sys.argv = ['ballbeam', 'plan', "
+                        f"{str(PAPER)!r}]; main()",
+    "python -m ballbeam": f"sys.argv = ['ballbeam', 'plan', {str(PAPER)!r}]; "
                           "runpy.run_module('ballbeam', run_name='__main__')",
     "python -m ballbeam_emulator": "sys.argv = ['ballbeam_emulator', '--help']; "
                                    "runpy.run_module('ballbeam_emulator', run_name='__main__')",
