@@ -55,6 +55,8 @@ def test_lockstep_run_matches_offline_and_records_every_channel(
     for topic in topics.STRUCT_TOPICS:
         assert len(run_log.topics[topic]) > 0, topic
     assert {"config", "versions", "run", "summary"} <= set(run_log.metadata)
+    # T* as the daemon recorded it for the summary: the paper's start, on the 2 ms grid
+    assert float(run_log.metadata["run"]["minimum_time_s"]) == pytest.approx(1.746, abs=1e-9)
     assert {"ballbeam.dbc", "config.resolved.json", "config.toml"} <= set(run_log.attachments)
     assert verify(run_log).ok
     # The independent reader: the mcap library opens it and sees the same message count.

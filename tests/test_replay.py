@@ -46,6 +46,25 @@ def test_golden_log_metrics_are_pinned() -> None:
     assert summary["frames_lost"] == 0 and summary["frames_rejected"] == 0
 
 
+def _with_run_metadata(run_log: RunLog, **entries: str) -> RunLog:
+    metadata = {**run_log.metadata, "run": {**run_log.metadata["run"], **entries}}
+    return dataclasses.replace(run_log, metadata=metadata)
+
+
+def test_the_summary_takes_the_recorded_minimum_time_and_computes_it_where_none_is() -> None:
+    from ballbeam.evaluation.summary import minimum_time_from_log
+
+    golden = read_log(GOLDEN)  # recorded before the daemon wrote T*: computed from its config
+    assert "minimum_time_s" not in golden.metadata["run"]
+    computed = minimum_time_from_log(golden)
+    assert computed == pytest.approx(1.746, abs=1e-9)  # the paper's start, 2 ms grid
+    assert minimum_time_from_log(_with_run_metadata(golden, minimum_time_s="1.25")) == 1.25
+    assert minimum_time_from_log(_with_run_metadata(golden, minimum_time_s="none")) is None
+    # a value that is not a time is not taken: computed again from the recorded config
+    for bad in ("", "nan", "-1.0", "inf", "1.7.4"):
+        assert minimum_time_from_log(_with_run_metadata(golden, minimum_time_s=bad)) == computed
+
+
 def test_golden_log_verifies_bit_for_bit() -> None:
     result = replay.verify(read_log(GOLDEN))
     assert result.ok, result.mismatch

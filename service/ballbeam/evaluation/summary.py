@@ -5,6 +5,7 @@ Computed from the log alone, so ``ballbeam run`` and ``ballbeam replay`` report 
 
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -270,7 +271,17 @@ def _recorded_limit(run_log: RunLog, name: str) -> float:
 
 
 def minimum_time_from_log(run_log: RunLog) -> float | None:
-    """T* from the run's recorded start and limits (None where the config is not usable)."""
+    """T* from the run's recorded start and limits (None where the config is not usable):
+    as the daemon recorded it, else (an older log, or a value that is not one) computed
+    from the recorded config."""
+    recorded = run_log.metadata.get("run", {}).get("minimum_time_s")
+    if recorded == "none":
+        return None
+    if recorded is not None:
+        with contextlib.suppress(ValueError):
+            value = float(recorded)
+            if math.isfinite(value) and value > 0.0:
+                return value
     from ballbeam.assembly import minimum_time_s
     from ballbeam.config import config_from_mapping
 

@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, BinaryIO
 
-from ballbeam.assembly import control_law, controller_design
+from ballbeam.assembly import control_law, controller_design, minimum_time_s
 from ballbeam.config import Config
 from ballbeam.core.control import ControllerDesign
 from ballbeam.core.replanning_law import ReplanningLaw
@@ -192,6 +192,10 @@ def _run_with_planner(
             design = controller_design(config) if tracker else None  # as recorded
     contract = FrameContract.load()
     resolved = json.dumps(config.model_dump(mode="json"), sort_keys=True)
+    # T* from this config, for the summary: whoever reads the log (`ballbeam run` at the
+    # end, `replay`) then needs neither the planner nor its imports (it recomputes where a
+    # log has none).
+    t_star = minimum_time_s(config)
     attachments = [
         ("ballbeam.dbc", "text/plain", contract.dbc_text.encode()),
         ("config.resolved.json", "application/json", resolved.encode()),
@@ -216,6 +220,7 @@ def _run_with_planner(
                 "plan_kind": config.plan.kind,
                 **({"plan_duration_s": repr(design.plan_duration_s)} if design is not None
                    else {}),
+                "minimum_time_s": "none" if t_star is None else repr(t_star),
                 "period_ns": str(config.controller.period_ns),
                 "sensor_period_ns": str(1_000_000_000 // config.plant.sensor_rate_hz),
                 "bus": f"{config.bus.interface}:{config.bus.channel}",
