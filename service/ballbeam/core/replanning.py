@@ -846,6 +846,7 @@ class _CycleRows:
 
     @classmethod
     def of(cls, d: _Design, period_s: float) -> _CycleRows:
+        K_terminal, P_terminal = _vec(d.K_terminal), _mat(d.P_terminal)
         return cls(
             design=d,
             filter=FilterRows(
@@ -855,12 +856,10 @@ class _CycleRows:
                 measurement_noise=_mat(d.measurement_noise),
                 angle_gain=float(_C[0, THETA]), position_gain=float(_C[1, BALL_POSITION]),
             ),
-            L=_mat(d.L), K=_vec(d.K), K_terminal=_vec(d.K_terminal),
-            P_terminal=_mat(d.P_terminal), estimate_covariance=_mat(d.estimate_covariance),
+            L=_mat(d.L), K=_vec(d.K), K_terminal=K_terminal,
+            P_terminal=P_terminal, estimate_covariance=_mat(d.estimate_covariance),
             ball_information=_mat(d.ball_information),
-            unsaturated_level=d.drive_max_v**2 / _inverse_quadratic(
-                _mat(d.P_terminal), _vec(d.K_terminal)
-            ),
+            unsaturated_level=d.drive_max_v**2 / _inverse_quadratic(P_terminal, K_terminal),
         )
 
 

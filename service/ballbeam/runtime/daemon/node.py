@@ -16,7 +16,7 @@ from ballbeam.assembly import control_law, controller_design, minimum_time_s
 from ballbeam.config import Config
 from ballbeam.core.control import ControllerDesign
 from ballbeam.core.replanning_law import ReplanningLaw
-from ballbeam.errors import BusError
+from ballbeam.errors import BallbeamError, BusError
 from ballbeam.logs import design_record
 from ballbeam.logs.recorder import Recorder
 from ballbeam.logs.recording import RunRecording
@@ -194,8 +194,11 @@ def _run_with_planner(
     resolved = json.dumps(config.model_dump(mode="json"), sort_keys=True)
     # T* from this config, for the summary: whoever reads the log (`ballbeam run` at the
     # end, `replay`) then needs neither the planner nor its imports (it recomputes where a
-    # log has none).
-    t_star = minimum_time_s(config)
+    # log has none). A figure of the summary's only: no run fails for want of it.
+    t_star: dict[str, str] = {}
+    with contextlib.suppress(BallbeamError):
+        value = minimum_time_s(config)
+        t_star["minimum_time_s"] = "none" if value is None else repr(value)
     attachments = [
         ("ballbeam.dbc", "text/plain", contract.dbc_text.encode()),
         ("config.resolved.json", "application/json", resolved.encode()),
@@ -220,7 +223,7 @@ def _run_with_planner(
                 "plan_kind": config.plan.kind,
                 **({"plan_duration_s": repr(design.plan_duration_s)} if design is not None
                    else {}),
-                "minimum_time_s": "none" if t_star is None else repr(t_star),
+                **t_star,
                 "period_ns": str(config.controller.period_ns),
                 "sensor_period_ns": str(1_000_000_000 // config.plant.sensor_rate_hz),
                 "bus": f"{config.bus.interface}:{config.bus.channel}",
