@@ -493,3 +493,32 @@ def test_channel_registered_mid_run() -> None:
     assert log.chunk_count == 1
     assert log.topics["/can"].log_time_ns.tolist() == list(range(100))
     assert log.topics["/state"].values["counter"].tolist() == list(range(50, 100))
+
+
+WRITER_POLICY = textwrap.dedent("""
+    import os, sys, time
+    from ballbeam.logs import Recorder
+    from ballbeam.runtime.ticker import leave_real_time
+    os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+    for name, setup in (("inherited", None), ("left", leave_real_time)):
+        recorder = Recorder(os.path.join(sys.argv[1], name + ".mcap"), writer_setup=setup)
+        time.sleep(0.05)  # the writer thread has started and run its setup
+        print(name, os.sched_getscheduler(recorder._thread.native_id))
+        recorder.close()
+""")
+
+
+def test_the_writer_thread_leaves_a_real_time_loops_scheduling(tmp_path: Path) -> None:
+    """On Linux a thread inherits its creator's SCHED_FIFO and CPU: the writer, compressing a
+    chunk at the loop's priority on the loop's CPU, kept the CPU until it blocked, and the
+    loop's timer woke it in vain (a ~0.7 ms late cycle every flush). The daemon hands the
+    recorder ``leave_real_time`` as the writer's setup."""
+    from ballbeam.runtime.process import realtime_permitted
+
+    if not realtime_permitted(1):
+        pytest.skip("SCHED_FIFO not permitted here: no real-time loop to leave")
+    done = subprocess.run([sys.executable, "-c", WRITER_POLICY, str(tmp_path)],
+                          capture_output=True, text=True, timeout=60, check=False)
+    assert done.returncode == 0, done.stderr
+    policies = dict(line.split() for line in done.stdout.splitlines())
+    assert policies == {"inherited": str(os.SCHED_FIFO), "left": str(os.SCHED_OTHER)}

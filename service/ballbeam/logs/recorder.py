@@ -27,7 +27,7 @@ import os
 import threading
 import time
 from collections import deque
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from importlib.metadata import PackageNotFoundError, version
 from types import TracebackType
@@ -166,6 +166,7 @@ class Recorder:
         chunk_size_bytes: int = 1 << 20,
         tap: ChunkTap | None = None,
         name: str | os.PathLike[str] | None = None,
+        writer_setup: Callable[[], None] | None = None,
     ) -> None:
         if queue_size < 1:
             raise ValueError("queue_size must be at least 1")
@@ -219,6 +220,8 @@ class Recorder:
             raise _recorder_error(f"cannot write log {self.path}: {_os_reason(exc)}", exc) from exc
 
         self._flush_interval_s = float(flush_interval_s)
+        # Called first in the writer thread: the daemon puts it below its real-time loop.
+        self._writer_setup = writer_setup
         self._chunk_size_bytes = int(chunk_size_bytes)
         self._capacity = int(queue_size)
         # Two locks: the open chunk (taken by record() for a microsecond) and the stream
@@ -354,6 +357,8 @@ class Recorder:
     # ---- writer thread ----------------------------------------------------------------------
 
     def _run(self) -> None:
+        if self._writer_setup is not None:
+            self._writer_setup()
         next_flush_s = time.monotonic() + self._flush_interval_s
         try:
             while True:

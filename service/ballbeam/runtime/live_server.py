@@ -42,6 +42,7 @@ from ballbeam.runtime.live import (
     parse_channel_frame,
 )
 from ballbeam.runtime.live_relay import SubprotocolRelay
+from ballbeam.runtime.ticker import leave_real_time
 
 POLL_S = 0.005  # how often an idle server looks for the daemon's next frame
 READ_BYTES = 1 << 20  # the pipe's size: one read takes whatever is there
@@ -216,9 +217,7 @@ def _leave_real_time() -> None:
     must never take the CPU from the control loop (the daemon starts it before it takes
     SCHED_FIFO; this makes sure), nor, without SCHED_FIFO, delay the daemon's and the plant's
     wake-ups (lock-step's ping-pong over the bus)."""
-    with contextlib.suppress(OSError, AttributeError):
-        if os.sched_getscheduler(0) != os.SCHED_OTHER:
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    leave_real_time()
     with contextlib.suppress(OSError):
         os.nice(NICE)
 

@@ -31,6 +31,7 @@ from ballbeam.core.replanning import (
 )
 from ballbeam.errors import PlanningError
 from ballbeam.logs.plan_record import design_json
+from ballbeam.runtime.ticker import leave_real_time
 
 log = logging.getLogger("ballbeam.planner")
 
@@ -48,8 +49,7 @@ CLOSE_WAIT_S = 1.0
 def serve(connection: Connection, parent_pid: int) -> None:
     """The planner process: answer each request until the pipe closes."""
     _die_with(parent_pid)
-    with contextlib.suppress(OSError, AttributeError):  # the loop's scheduling is not ours
-        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    leave_real_time()  # the loop's scheduling is not ours
     with contextlib.suppress(KeyboardInterrupt):
         _warm_up()
         try:

@@ -6,6 +6,7 @@ kernel's wake-up jitter is tens of microseconds, the spin's is about one.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 from dataclasses import dataclass
@@ -96,3 +97,14 @@ def spin_ns_for_this_process(spin_us: int) -> int:
 def scheduled_realtime() -> bool:
     """Does this process run under a real-time policy (SCHED_FIFO or SCHED_RR)?"""
     return os.sched_getscheduler(0) in (os.SCHED_FIFO, os.SCHED_RR)
+
+
+def leave_real_time() -> None:
+    """Put the calling thread (on Linux the policy is a thread's) at normal scheduling if it
+    inherited a real-time one: work that serves the loop (its recorder's writer, its planner)
+    must never hold the loop's CPU. At the loop's own SCHED_FIFO priority on its CPU, a
+    thread keeps that CPU until it blocks: the loop's timer wakes it in vain, and it cannot
+    even ask for the interpreter lock. Where the system refuses, nothing changes."""
+    with contextlib.suppress(OSError, AttributeError):
+        if os.sched_getscheduler(0) != os.SCHED_OTHER:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))

@@ -36,7 +36,7 @@ from ballbeam.runtime.process import (
     stop_with_parent,
 )
 from ballbeam.runtime.stop import StopFlag
-from ballbeam.runtime.ticker import spin_ns_for_this_process, worst_lateness_ns
+from ballbeam.runtime.ticker import leave_real_time, spin_ns_for_this_process, worst_lateness_ns
 
 if TYPE_CHECKING:
     from ballbeam.runtime.live import LiveView
@@ -214,6 +214,7 @@ def _run_with_planner(
     recorder = Recorder(
         log_stream if log_stream is not None else log_path,
         name=log_path if log_stream is not None else None,
+        writer_setup=leave_real_time,
         metadata={
             "config": {"json": resolved, "source": config_path or "(defaults)"},
             "versions": {**package_versions(), "git_revision": git_revision()},
