@@ -342,3 +342,61 @@ def test_plans_adopted_while_coasting_come_with_the_next_output_at_their_own_cyc
     output = law.step(readings[125])
     cycles = [taken.cycle for taken in output.adopted_plans]
     assert cycles and cycles == sorted(cycles) and cycles[0] >= 100 and cycles[-1] <= 125
+
+
+def _late_reading_setup() -> tuple[Any, Any, list[Any]]:
+    from ballbeam.assembly import controller_design
+    from ballbeam.core.plant import SensorReading
+
+    # Fixed observer gains and no ball-gain fit: the model the check below runs is the law's.
+    config = load_config(PAPER, ("run.duration_s=0.4", "observer.adapt_noise=false",
+                                 "tracker.adapt_ball_gain=false"))
+    trace = run_offline(config).trace
+    readings = [SensorReading(int(a), int(p)) for a, p in zip(
+        trace.angle_counts.tolist(), trace.position_counts.tolist(), strict=True)]
+    return config, controller_design(config), readings
+
+
+@pytest.mark.parametrize("age", [2, 5, 17])
+def test_a_late_reading_corrects_the_estimate_as_if_it_had_come_in_time(age: int) -> None:
+    """A reading of ``age`` cycles ago, all of them coasted at a held voltage: the estimate
+    the law then steps on is the one the in-time correction, predicted on through the same
+    voltages, gives (the check runs the model from the corrected state; the law adds Adᵈ δ
+    to its coasted prediction instead)."""
+    from ballbeam.core.control import correct, predict
+
+    config, design, readings = _late_reading_setup()
+    law = TrackerLaw(design)
+    first = 150  # well into the first swing: the servo turns fast
+    for reading in readings[:first]:
+        law.step(reading)
+    held_v = 2.0
+    prior = law.state.prediction
+    assert prior is not None
+    in_time = correct(design.observer, prior, design.law_measurement(readings[first]))
+    drive_v = design.modelled_drive_v(held_v, design.deadzone_at(law.state))
+    for _ in range(age):
+        in_time = predict(design.observer, in_time, drive_v)
+    law.coast(held_v, age)
+    coasted = law.state.prediction
+    output = law.step(readings[first], age_cycles=age)
+    assert np.allclose(output.estimate, design.in_x(in_time), rtol=0, atol=1e-12)
+    assert not np.allclose(output.estimate, design.in_x(coasted), rtol=0, atol=1e-6)
+    assert not output.measured and law.cycle == first + age + 1
+
+
+def test_a_reading_older_than_the_last_taken_or_than_remembered_is_history() -> None:
+    """A late reading of a cycle that measured (a newer reading was taken since), or of one
+    longer ago than the law remembers, leaves the law as a plain coasted cycle would."""
+    from ballbeam.core.law import LATE_READING_CYCLES
+
+    _, design, readings = _late_reading_setup()
+    for coasted, age in ((3, 4), (LATE_READING_CYCLES + 5, LATE_READING_CYCLES + 2)):
+        late, plain = TrackerLaw(design), TrackerLaw(design)
+        for reading in readings[:120]:
+            late.step(reading)
+            plain.step(reading)
+        late.coast(1.0, coasted)
+        plain.coast(1.0, coasted)
+        assert late.step(readings[100], age_cycles=age) == plain.step(None)
+        assert late.state == plain.state

@@ -70,14 +70,15 @@ def recording(tmp_path: Path) -> RunRecording:
     recorder.close()
 
 
-def test_a_sample_read_behind_the_stream_is_history_not_a_measurement(
+def test_a_sample_read_behind_the_stream_is_told_as_late_as_it_is(
     recording: RunRecording,
 ) -> None:
     """Real time: the plant samples period i at its origin + i ms (its counters count periods).
     A starved daemon reading its socket behind the stream takes older samples; one 2 ms or more
-    older than the freshest a sample has been is no measurement of now: the cycle coasts
-    instead (counted). A daemon late within its period is not fooled (the freshest relation
-    comes from the least age, which lateness only adds to)."""
+    older than the freshest a sample has been is no measurement of now: it is given with the
+    whole periods it is late (counted), for the law to take for its own period. A daemon late
+    within its period is not fooled (the freshest relation comes from the least age, which
+    lateness only adds to)."""
     intake = SensorIntake(CONTRACT, recording, late_sample_periods=2)
     ms = 1_000_000
     origin_ns = 5_000 * ms
@@ -87,20 +88,23 @@ def test_a_sample_read_behind_the_stream_is_history_not_a_measurement(
         (251, 251, 251.2),
         (252, 252, 253.1),  # the daemon 0.9 ms late within its period: 1.1 ms old, taken
         (253, 253, 253.3),
-        (2, 258, 260.4),  # past the wrap: period 258 read at 260.4, 2.2 ms old: coasted
+        (2, 258, 260.4),  # past the wrap: period 258 read at 260.4, 2.2 ms old: 2 late
+        (3, 259, 264.3),  # 5.3 ms old: 5 late
         (4, 260, 261.5),  # 1.3 ms old: taken
         (7, 263, 263.2),  # in step again
     ]
-    taken = []
+    late = []
     for counter, _period, at_ms in reads:
         intake.handle(framed(SensorFrame(counter, 10, -20, 0)), 0, 0)
-        taken.append(intake.take(origin_ns + round(at_ms * ms)) is not None)
-    assert taken == [True, True, True, True, False, True, True]
-    assert intake.late_samples == 1
-    # Lock-step (no lateness bound): every sample is a measurement.
+        taken = intake.take(origin_ns + round(at_ms * ms))
+        assert taken is not None and taken[0].counter == counter
+        late.append(taken[1])
+    assert late == [0, 0, 0, 0, 2, 5, 0, 0]
+    assert intake.late_samples == 2
+    # Lock-step (no lateness bound): every sample is of now.
     lockstep = SensorIntake(CONTRACT, recording)
     lockstep.handle(framed(SensorFrame(3, 10, -20, 0)), 0, 50)
-    assert lockstep.take(10**12) is not None
+    assert lockstep.take(10**12) == (SensorFrame(3, 10, -20, 0), 0)
 
 
 def test_intake_accepts_samples_in_order_and_judges_the_rest(recording: RunRecording) -> None:
@@ -111,7 +115,7 @@ def test_intake_accepts_samples_in_order_and_judges_the_rest(recording: RunRecor
         return framed(SensorFrame(counter, 10, -20, 0))
 
     assert intake.handle(sensor(5), 0, 0) == "ok"
-    assert intake.take() == SensorFrame(5, 10, -20, 0)
+    assert intake.take() == (SensorFrame(5, 10, -20, 0), 0)
     assert intake.take() is None  # a sample is used once
     assert intake.handle(sensor(5), 0, 0) == "repeated"
     assert intake.handle(sensor(4), 0, 0) == "stale"

@@ -17,13 +17,19 @@ class FakeClock:
     def __init__(self) -> None:
         self.now_ns = 0
         self.oversleep_ns: list[int] = []  # extra delay of each sleep, in order
+        self.cpu_ns = 0  # the thread's CPU time: what a test says its cycles used
+        self.slept_ns: list[int] = []
 
     def monotonic_ns(self) -> int:
         self.now_ns += 1_000  # each reading costs a microsecond, as spinning does
         return self.now_ns
 
+    def thread_time_ns(self) -> int:
+        return self.cpu_ns
+
     def sleep(self, seconds: float) -> None:
         extra_ns = self.oversleep_ns.pop(0) if self.oversleep_ns else 0
+        self.slept_ns.append(round(seconds * 1e9))
         self.now_ns += round(seconds * 1e9) + extra_ns
 
 
@@ -95,3 +101,24 @@ def test_a_logs_lateness_counts_the_periods_skipped_before_a_cycle() -> None:
     timing["skipped"] = [0, 0, 0, 3, 0]
     timing["lateness_ns"] = [10_000, 20_000, 30_000, 40_000, 50_000]
     assert behind_schedule_ns(timing).tolist() == [10_000, 20_000, 30_000, 3_040_000, 50_000]
+
+
+def test_it_spins_only_while_the_periods_cpu_time_leaves_room(clock: FakeClock) -> None:
+    """A spin is CPU time, and SCHED_FIFO tasks that use 95 % of a CPU for a second are stopped
+    for the rest of it (kernel.sched_rt_runtime_us): after a cycle whose CPU time and the spin
+    would pass SPIN_CPU_SHARE of the period, the ticker sleeps to the deadline instead."""
+    spin_ns = 200_000
+    ticker = Ticker(PERIOD_NS, spin_ns=spin_ns, start_ns=0)
+    ticker.wait()
+    for cycle_cpu_ns, spins in ((100_000, True), (700_000, False), (300_000, True)):
+        clock.now_ns += cycle_cpu_ns  # the cycle's work, all of it on the CPU
+        clock.cpu_ns += cycle_cpu_ns
+        before = clock.now_ns
+        tick = ticker.wait()
+        next_deadline_ns = tick.deadline_ns
+        slept_to_ns = before + clock.slept_ns[-1]
+        # (each clock reading costs the fake a microsecond)
+        assert abs(slept_to_ns - (next_deadline_ns - (spin_ns if spins else 0))) < 5_000
+        assert tick.lateness_ns < 10_000
+    assert ticker.spins_skipped == 1
+    assert ticker_module.SPIN_CPU_SHARE * PERIOD_NS // 100 < 700_000 + spin_ns

@@ -246,7 +246,7 @@ def command_run(args: argparse.Namespace) -> int:
             + (f" and |θ| reached {summary.get('max_abs_theta_deg')}° (bound "
                f"{result.config.limits.theta_deg}°)" if bound_broken else "")
             + f": exit {code} (log: {result.log_path})"
-            + (f"; {summary['late_samples']} sensor samples were read too late to use: the "
+            + (f"; {summary['late_samples']} sensor samples were read periods late: the "
                "daemon was short of CPU (README: real-time scheduling)"
                if end_reason == "plant_lost" and summary.get("late_samples") else ""),
             file=sys.stderr,

@@ -9,6 +9,7 @@ the bit on every machine, so a recorded design replays identically wherever it i
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
@@ -456,6 +457,51 @@ def initial_estimate(observer: ObserverLaw, measurement: Row2, prior_state: Row4
     return as_row4(estimate)
 
 
+def correction_gain(
+    design: ControllerDesign, state: ControllerState
+) -> tuple[ObserverLaw, Gain | None]:
+    """The observer a measurement corrects through at this cycle, and the noise adaptation's
+    gain for it (None: the observer's own)."""
+    observer = design.observer_at(int(state.path_position))
+    noise = design.noise_adaptation
+    if noise is None:
+        return observer, None
+    mean_square = (
+        noise.expected_square if state.noise_mean_square is None else state.noise_mean_square
+    )
+    return observer, noise.gain(noise.level(mean_square), observer is design.rest_observer)
+
+
+def late_correction(
+    design: ControllerDesign,
+    state: ControllerState,
+    reading: SensorReading,
+    priors: Sequence[Row4],
+) -> tuple[ControllerState, tuple[Row4, ...]]:
+    """A sample of an earlier cycle, read only now: ``priors`` are the predictions x̄ of that
+    cycle and of each one since (all coasted on the model, no measurement among them), and
+    ``state`` is this cycle's. Returns this cycle's state and the later priors as they would
+    have been had the sample come in time.
+
+    The model is linear in the state and the inputs were what they were either way, so a
+    correction δ = L (y − C x̄) made at that cycle is Adᵐ δ m cycles on: the sample, however
+    late, still tells the estimate where the plant was, and the model carries that to now
+    (a starved loop that coasted on stale estimates, and then commanded 0 V, ran the servo
+    into its end stop). The adaptations learn from samples in time only."""
+    observer, gain = correction_gain(design, state)
+    prior = priors[0]
+    corrected = correct(observer, prior, design.law_measurement(reading), gain)
+    delta = as_row4([c - p for c, p in zip(corrected, prior, strict=True)])
+    later: list[Row4] = []
+    ratio = state.ball_gain_ratio
+    for prediction in (*priors[1:], state.prediction):
+        delta = predict(design.observer, delta, 0.0, ratio)
+        if prediction is not None:
+            later.append(as_row4([x + d for x, d in zip(prediction, delta, strict=True)]))
+    *earlier, now = later
+    return state._replace(prediction=now), tuple(earlier)
+
+
 def control_cycle(
     design: ControllerDesign,
     state: ControllerState,
@@ -473,15 +519,7 @@ def control_cycle(
     elif measurement is None:
         estimate = state.prediction  # coast on the model
     else:
-        observer = design.observer_at(int(state.path_position))
-        noise = design.noise_adaptation
-        gain = None
-        if noise is not None:
-            mean_square = (
-                noise.expected_square if state.noise_mean_square is None
-                else state.noise_mean_square
-            )
-            gain = noise.gain(noise.level(mean_square), observer is design.rest_observer)
+        observer, gain = correction_gain(design, state)
         estimate = correct(observer, state.prediction, measurement, gain)
     # The measured angle and position in SI units (each output reads one state).
     (c_theta, _, _, _), (_, _, _, c_position) = design.observer.C
@@ -622,12 +660,14 @@ def coast_cycles(
     held_voltage_v: float,
     count: int,
     lookahead_v: tuple[float, ...] = (),
+    priors: list[Row4] | None = None,
 ) -> ControllerState:
     """Advance ``count`` cycles with no measurement (skipped periods after an overrun, or 0 V
     while a fault holds the plant); the path's clock runs on. The plant drove the commands in
     ``lookahead_v`` (sent with the last command) one per period, then held the last of them;
     without them it held ``held_voltage_v``. Before the first measurement only the counters
-    advance."""
+    advance. ``priors`` (if given) gets each coasted cycle's prediction, for a late sample
+    (:func:`late_correction`)."""
     prediction = state.prediction
     fit = state.fit
     if prediction is not None:
@@ -642,6 +682,8 @@ def coast_cycles(
             )
             if design.adaptation is not None:
                 fit = design.adaptation.advance(fit, prediction[0])
+            if priors is not None:
+                priors.append(prediction)
             prediction = predict(design.observer, prediction, drive_v, state.ball_gain_ratio)
     return ControllerState(
         cycle=state.cycle + count, prediction=prediction,

@@ -21,9 +21,11 @@ from ballbeam.core.control import (
     CycleOutput,
     coast_cycles,
     control_cycle,
+    late_correction,
     lookahead_voltages,
     starting_state,
 )
+from ballbeam.core.model import Row4
 from ballbeam.core.plant import SensorReading
 
 
@@ -45,10 +47,20 @@ class ControlLaw(Protocol):
         """Whether a first reading has been taken (before it, a lost sensor is no fault)."""
         ...
 
-    def step(self, reading: SensorReading | None, lateness_ns: int = 0) -> CycleOutput:
+    @property
+    def takes_late_readings(self) -> bool:
+        """Whether ``step`` corrects its estimate by a reading of an earlier cycle (else it
+        coasts through it, and the run counts the cycle as one without a sample)."""
+        ...
+
+    def step(
+        self, reading: SensorReading | None, lateness_ns: int = 0, age_cycles: int = 0
+    ) -> CycleOutput:
         """One period: the command and what the log records of it (estimate, reference, an
         adopted plan). ``reading``: None when no valid sample came in time (the first step
-        needs one); ``lateness_ns``: real time, how late the period began."""
+        needs one); ``lateness_ns``: real time, how late the period began; ``age_cycles``:
+        the reading is of the period that many cycles back (a loop that read its bus behind
+        the stream), not of this one (0). A law that cannot use a late reading coasts."""
         ...
 
     def coast(
@@ -65,6 +77,10 @@ class ControlLaw(Protocol):
         ...
 
 
+# The coasted cycles a tracker remembers for a late reading (longer ago: it coasts on).
+LATE_READING_CYCLES = 32
+
+
 class TrackerLaw:
     """The paper's tracker (``control.py``) behind the seam: the functions it always ran,
     over its recorded design."""
@@ -72,6 +88,10 @@ class TrackerLaw:
     def __init__(self, design: ControllerDesign) -> None:
         self.design = design
         self.state: ControllerState = starting_state(design)
+        # The predictions of the cycles coasted since the last reading, oldest first (the
+        # first is cycle ``_coasted_from``'s): what a late reading corrects from.
+        self._coasted: list[Row4] = []
+        self._coasted_from = 0
 
     @property
     def period_s(self) -> float:
@@ -85,14 +105,54 @@ class TrackerLaw:
     def started(self) -> bool:
         return self.state.prediction is not None
 
-    def step(self, reading: SensorReading | None, lateness_ns: int = 0) -> CycleOutput:
+    @property
+    def takes_late_readings(self) -> bool:
+        return True
+
+    def step(
+        self, reading: SensorReading | None, lateness_ns: int = 0, age_cycles: int = 0
+    ) -> CycleOutput:
+        if reading is not None and age_cycles > 0:
+            self._take_late(reading, age_cycles)
+            reading = None
+        prior = self.state.prediction
         self.state, output = control_cycle(self.design, self.state, reading, lateness_ns)
+        if reading is None and prior is not None:
+            self._remember([prior])
+        else:
+            self._coasted, self._coasted_from = [], self.state.cycle
         return output
 
     def coast(
         self, held_voltage_v: float, count: int, lookahead_v: tuple[float, ...] = ()
     ) -> None:
-        self.state = coast_cycles(self.design, self.state, held_voltage_v, count, lookahead_v)
+        priors: list[Row4] = []
+        self.state = coast_cycles(
+            self.design, self.state, held_voltage_v, count, lookahead_v, priors
+        )
+        self._remember(priors)
+
+    def _remember(self, priors: list[Row4]) -> None:
+        """Keep the priors of the cycles just coasted (they end at the law's cycle)."""
+        if not self._coasted:
+            self._coasted_from = self.state.cycle - len(priors)
+        self._coasted += priors
+        excess = len(self._coasted) - LATE_READING_CYCLES
+        if excess > 0:
+            del self._coasted[:excess]
+            self._coasted_from += excess
+
+    def _take_late(self, reading: SensorReading, age_cycles: int) -> None:
+        """Correct the estimate by a reading of ``age_cycles`` ago, if that cycle coasted
+        and is remembered; else (a reading taken since is newer, or it is older than kept)
+        it is history, and the cycle coasts."""
+        index = self.state.cycle - age_cycles - self._coasted_from
+        if not 0 <= index < len(self._coasted):
+            return
+        self.state, later = late_correction(
+            self.design, self.state, reading, self._coasted[index:]
+        )
+        self._coasted, self._coasted_from = list(later), self._coasted_from + index + 1
 
     def lookahead(self) -> tuple[float, ...]:
         return lookahead_voltages(self.design, self.state)

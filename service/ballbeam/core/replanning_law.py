@@ -138,6 +138,10 @@ class ReplanningLaw:
     def started(self) -> bool:
         return self.controller.cycle > 0
 
+    @property
+    def takes_late_readings(self) -> bool:
+        return False
+
     def request_cycle(self, request: Request) -> int:
         """The law's cycle at which ``request`` was made."""
         return self.law_cycle(request.cycle)
@@ -178,8 +182,14 @@ class ReplanningLaw:
         request no longer outstanding is dropped then)."""
         self._answers[isinstance(answer, DesignAnswer), answer.request_cycle] = answer
 
-    def step(self, reading: SensorReading | None, lateness_ns: int = 0) -> CycleOutput:
+    def step(
+        self, reading: SensorReading | None, lateness_ns: int = 0, age_cycles: int = 0
+    ) -> CycleOutput:
         controller = self.controller
+        if age_cycles > 0:
+            # Its filter and identification take each sample at its own cycle only: a late
+            # one is history, and the cycle coasts on the estimate.
+            reading = None
         if reading is None and not self.started:
             raise ValueError("the first control cycle needs a sensor reading")  # as the tracker
         if not self.started:

@@ -126,10 +126,11 @@ def verify(run_log: RunLog) -> VerifyResult:
             commanded = False
         else:
             reading = None
-            if fresh_all[index]:
+            fresh = int(fresh_all[index])  # 1: of this period; 1 + n: of n cycles back
+            if fresh:
                 reading = SensorReading(int(angle_all[index]), int(position_all[index]))
             lateness_ns = int(lateness_all[index]) + skipped * period_ns
-            output = law.step(reading, lateness_ns)
+            output = law.step(reading, lateness_ns, max(fresh - 1, 0))
             replayed_v = output.voltage_v
             commanded = True
         plan_mismatch = law.plan_mismatch if isinstance(law, ReplanningLaw) else None

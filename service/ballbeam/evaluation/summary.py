@@ -222,8 +222,10 @@ def summarise(run_log: RunLog, theta_limit_rad: float | None = None) -> dict[str
         "frames_lost": counter("sensor_frames_lost"),
         "frames_rejected": counter("rejected_total"),
         "coasted_cycles": counter("coasted_cycles"),
-        # Real time: samples read too late to be taken for now (coasted; absent in older logs).
+        # Real time: samples read periods after their own (absent in older logs), and those
+        # the law took for the period they are of (the rest: coasted over).
         "late_samples": counter("late_samples"),
+        "late_readings": counter("late_readings"),
         "recorder_dropped": counter("recorder_dropped"),
         "plant_missed_periods": plant_missed_periods(run_log),
         # The emulator's own counts (its missed_periods among them: truth gaps above are those

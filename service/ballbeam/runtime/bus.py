@@ -324,6 +324,30 @@ def open_bus(bus: BusSection) -> can.BusABC:
 
 
 MAX_MALFORMED_PER_CALL = 64
+# A node's receive queue [bytes; the kernel doubles it]: about 25 datagrams on loopback, a
+# few periods of the bench's own traffic. A deep queue keeps no frame worth having, it delays
+# them all: under a flood the daemon, reading at its limit, read every sample ~16 ms late out
+# of the kernel's default 208 KiB. With this much the kernel drops what the node could not
+# have read in time anyway (the sample counters show the loss).
+RECEIVE_QUEUE_BYTES = 16 * 1024
+
+
+def bound_receive_queue(bus: can.BusABC, size_bytes: int = RECEIVE_QUEUE_BYTES) -> str:
+    """Set the bus socket's receive buffer (SO_RCVBUF); what was set, for the log."""
+    try:
+        fd = bus.fileno()
+    except NotImplementedError:  # python-can's virtual bus, in-process
+        fd = -1
+    if fd < 0:
+        return "not set: the bus has no socket"
+    sock = socket.socket(fileno=fd)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, size_bytes)
+        return str(sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF))
+    except OSError as error:
+        return f"not set: {error.strerror}"
+    finally:
+        sock.detach()  # the descriptor stays the bus's
 
 
 def recv_frame(

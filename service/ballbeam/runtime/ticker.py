@@ -24,6 +24,14 @@ class Tick:
         return self.start_ns - self.deadline_ns
 
 
+# The share of a period's CPU time [%] up to which the ticker spins: a spin is CPU time, and
+# under SCHED_FIFO Linux lets real-time tasks use 95 % of a CPU a second
+# (kernel.sched_rt_runtime_us) and then stops them for the rest of it. A loop spinning 200 µs
+# every period beside a cycle busy with a flood of frames got there, and stalled ~50 ms once
+# a second: coasting, then 0 V, while the servo ran into its end stop.
+SPIN_CPU_SHARE = 80
+
+
 class Ticker:
     def __init__(self, period_ns: int, spin_ns: int = 200_000, start_ns: int | None = None):
         if period_ns <= 0:
@@ -33,6 +41,8 @@ class Ticker:
         self.origin_ns = time.monotonic_ns() if start_ns is None else start_ns
         self._next_cycle = 0
         self.overruns = 0  # cycles that found their deadline already passed by a period
+        self.spins_skipped = 0  # waits that slept to the deadline: the cycle's CPU left no room
+        self._cpu_at_return_ns = time.thread_time_ns()
 
     def wait(self) -> Tick:
         """Block until the next deadline. A cycle that starts a whole period or more after
@@ -43,12 +53,19 @@ class Ticker:
         deadline_ns = self.origin_ns + self._next_cycle * self.period_ns
         now_ns = time.monotonic_ns()
         if now_ns - deadline_ns < self.period_ns:
-            sleep_until_ns = deadline_ns - self.spin_ns
+            spin_ns = self.spin_ns
+            cycle_cpu_ns = time.thread_time_ns() - self._cpu_at_return_ns
+            if spin_ns and (cycle_cpu_ns + spin_ns) * 100 > self.period_ns * SPIN_CPU_SHARE:
+                spin_ns = 0
+                self.spins_skipped += 1
+            sleep_until_ns = deadline_ns - spin_ns
             if now_ns < sleep_until_ns:
                 time.sleep((sleep_until_ns - now_ns) * 1e-9)
             while (now_ns := time.monotonic_ns()) < deadline_ns:
                 pass
-        return self.catch_up(Tick(self._next_cycle, deadline_ns, now_ns, 0))
+        tick = self.catch_up(Tick(self._next_cycle, deadline_ns, now_ns, 0))
+        self._cpu_at_return_ns = time.thread_time_ns()
+        return tick
 
     def catch_up(self, tick: Tick) -> Tick:
         """``tick`` while its period is the present one; once the clock is a whole period or

@@ -166,34 +166,42 @@ class SensorIntake:
         self._freshest_offset_ns: int | None = None
         self.late_samples = 0
 
-    def take(self, now_ns: int = 0) -> SensorFrame | None:
-        """The latest sample if no cycle has used it yet, and it is not late.
+    def take(self, now_ns: int = 0) -> tuple[SensorFrame, int] | None:
+        """The latest sample if no cycle has used it yet, with the plant periods it is late
+        (0: it is of now).
 
         The plant samples its period ``i`` at its own ``origin + i·period``; ``now_ns − i·period``
         is then that origin plus the sample's age now. Its smallest value so far is the
         freshest a sample has ever been (the bus's own delay); a sample older than that by
-        ``late_sample_periods`` periods is late. A starved daemon reads its socket behind the
-        stream (samples 29 ms old were read, and taken for now, while the servo ran to 53.6°);
-        such a sample is history, and the cycle coasts on the model instead (counted)."""
+        ``late_sample_periods`` periods or more is late by as many whole periods. A starved
+        daemon reads its socket behind the stream (samples 29 ms old were read, and taken
+        for now, while the servo ran to 53.6°): such a sample is of the past, and the law
+        is told how far (counted)."""
         sample = self.latest if self.fresh else None
         self.fresh = False
-        if sample is None or self.late_sample_periods is None:
-            return sample
-        if self.behind(now_ns):
-            self.late_samples += 1
+        if sample is None:
             return None
-        return sample
+        late_periods = self.late_periods(now_ns)
+        if late_periods:
+            self.late_samples += 1
+        return sample, late_periods
 
     def behind(self, now_ns: int) -> bool:
         """Real time: is the latest sample late at ``now_ns`` (see :meth:`take`)? False before
         any sample, and in lock-step."""
+        return self.late_periods(now_ns) > 0
+
+    def late_periods(self, now_ns: int) -> int:
+        """The whole plant periods the latest sample is late at ``now_ns``; 0 when it is
+        less than ``late_sample_periods`` behind (the loop's ordinary jitter), before any
+        sample, and in lock-step."""
         if self.latest is None or self.late_sample_periods is None:
-            return False
+            return 0
         offset_ns = now_ns - self._latest_index * self.sample_period_ns
         if self._freshest_offset_ns is None or offset_ns < self._freshest_offset_ns:
             self._freshest_offset_ns = offset_ns
-        return (offset_ns - self._freshest_offset_ns
-                >= self.late_sample_periods * self.sample_period_ns)
+        periods = (offset_ns - self._freshest_offset_ns) // self.sample_period_ns
+        return periods if periods >= self.late_sample_periods else 0
 
     def reject(self, reason: str, detail: str, log_time_ns: int, cycle: int) -> None:
         self.rejected[reason] += 1

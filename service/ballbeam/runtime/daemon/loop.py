@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
 
 import can
@@ -19,7 +19,7 @@ import numpy as np
 from ballbeam.assembly import counts_per_measurement
 from ballbeam.config import Config
 from ballbeam.core.control import CycleOutput, PlanTaken
-from ballbeam.core.law import ControlLaw
+from ballbeam.core.law import LATE_READING_CYCLES, ControlLaw
 from ballbeam.core.plant import SensorReading
 from ballbeam.core.replanning import PlanAnswer, solve_design_request
 from ballbeam.core.replanning_law import ReplanningLaw
@@ -75,6 +75,25 @@ TAKE_IN_WHILE_WAITING = 1000
 CATCH_UP_SHARE = 80
 
 
+class WorkReserve:
+    """The time a cycle's own work (law, commands, records) takes: the median of the last
+    WORK_WINDOW cycles' and a quarter more. A median, not a peak: the one long cycle after a
+    stall (it coasts through the periods missed) kept a peak high for a hundred cycles, in
+    which the loop read too little of its bus to catch up."""
+
+    def __init__(self) -> None:
+        self._recent: deque[int] = deque(maxlen=WORK_WINDOW)
+        self.reserve_ns = 0
+
+    def took(self, work_ns: int) -> None:
+        self._recent.append(work_ns)
+        median_ns = sorted(self._recent)[len(self._recent) // 2]
+        self.reserve_ns = median_ns + median_ns // 4
+
+
+WORK_WINDOW = 9
+
+
 class PlantLostError(BallbeamError, TimeoutError):
     """The plant stopped sending sensor frames."""
 
@@ -84,7 +103,8 @@ class DaemonStats:
     cycles: int = 0
     measured_cycles: int = 0
     coasted_cycles: int = 0
-    late_samples: int = 0  # real time: samples read too late to be taken for now (coasted)
+    late_samples: int = 0  # real time: samples read periods after their own (the loop behind)
+    late_readings: int = 0  # ... of them, those the law took for the period they are of
     fault_cycles: int = 0
     overruns: int = 0
     skipped_periods: int = 0
@@ -168,6 +188,7 @@ class ControllerDaemon:
             else SECOND_WRITER_FRAMES_CLASSIC
         )
         self.period_ns = config.controller.period_ns
+        self.sample_periods_per_cycle = sensor_periods_per_cycle(config)
         self.n_cycles = round(config.run.duration_s * config.controller.rate_hz)
         self._stats = DaemonStats(authenticated=auth is not None)
         self.cycles_since_sensor = 0
@@ -257,14 +278,26 @@ class ControllerDaemon:
             self._stats.end_reason = "recorder_failed"
             self.stop.set("recorder_failed")
         cycle = self.law.cycle
-        sample = self.intake.take(time.monotonic_ns())
+        received = self.intake.take(time.monotonic_ns())
         reading = None
-        if sample is None:
+        age_cycles = 0
+        if received is not None:
+            sample, late_periods = received
+            age_cycles = late_periods // self.sample_periods_per_cycle
+            if age_cycles and not (
+                self.law.started and self.law.takes_late_readings
+                and age_cycles <= LATE_READING_CYCLES
+            ):
+                received, age_cycles = None, 0  # history: the cycle coasts
+        if received is None:
             self.cycles_since_sensor += 1
         else:
+            self._stats.late_readings += age_cycles > 0
             reading = SensorReading(sample.angle_counts, sample.position_counts)
+            # A late sample still shows the plant alive, and the law takes it for the period
+            # it is of: the estimate is of now again.
             self.cycles_since_sensor = 0
-            if self.names_periods:
+            if self.names_periods and not age_cycles:
                 self._learn_period_offset(sample.counter, cycle)
         timeout = self._sensor_timeout_periods()
         self._take_plans()
@@ -275,8 +308,8 @@ class ControllerDaemon:
         if self.in_fault:
             self.in_fault = False
             self._event("sensor_frames_resumed", f"after {timeout}+ silent periods")
-        self._record_sensor(cycle, reading)
-        output = self.law.step(reading, lateness_ns)
+        self._record_sensor(cycle, reading, age_cycles)
+        output = self.law.step(reading, lateness_ns, age_cycles)
         self._send_plan_request()
         self.last_output = output
         # What the plant is to drive if the next commands do not come in time (real time).
@@ -433,7 +466,10 @@ class ControllerDaemon:
             return max(controller.sensor_timeout_periods, controller.sensor_timeout_alive_periods)
         return controller.sensor_timeout_periods
 
-    def _record_sensor(self, cycle: int, reading: SensorReading | None) -> None:
+    def _record_sensor(
+        self, cycle: int, reading: SensorReading | None, age_cycles: int = 0
+    ) -> None:
+        """``fresh``: 0 none, 1 a sample of this period, 1 + n one of n cycles back."""
         sample = self.intake.latest
         if reading is None or sample is None:
             record = SensorRecord(cycle, 0, 0, 0, 0, 0, math.nan, math.nan)
@@ -443,7 +479,7 @@ class ControllerDaemon:
                 reading.position_counts * self.position_per_count,
             )
             record = SensorRecord(
-                cycle, 1, sample.counter, sample.status, reading.angle_counts,
+                cycle, 1 + age_cycles, sample.counter, sample.status, reading.angle_counts,
                 reading.position_counts,
                 measurement[0] / self.config.model.angle_sensor_gain,
                 measurement[1] / self.config.model.position_sensor_gain,
@@ -588,13 +624,21 @@ class ControllerDaemon:
         spin_ns = spin_ns_for_this_process(self.config.controller.spin_us)
         ticker = Ticker(self.period_ns, spin_ns=spin_ns, start_ns=origin_ns)
         self.mono_origin_ns, self.wall_origin_ns = origin_ns, self._wall_ns_at(origin_ns)
+        work = WorkReserve()
         while not self.stop.is_set() and self.law.cycle < self.n_cycles:
             tick = ticker.wait()
             self.log_time_ns = self.wall_origin_ns + tick.cycle * self.period_ns
             # Read what has arrived, for half a period at most: a flood must not hold the loop
             # (the rest is read next cycle, or dropped by the kernel if its buffer overflows).
-            drain_until_ns = tick.start_ns + self.period_ns // 2
-            catch_up_until_ns = tick.start_ns + self.period_ns * CATCH_UP_SHARE // 100
+            # Behind the stream, read on, but never into the time the cycle's own work needs
+            # before the next deadline: a catch-up that made the cycle overrun would put the
+            # loop further behind at every period (under a flood it did, for 0.4 s at 0 V).
+            # (The ticker's spin gives way to reading: it spins only where the CPU allows.)
+            catch_up_until_ns = min(
+                tick.start_ns + self.period_ns * CATCH_UP_SHARE // 100,
+                tick.deadline_ns + self.period_ns - work.reserve_ns,
+            )
+            drain_until_ns = min(tick.start_ns + self.period_ns // 2, catch_up_until_ns)
             while (message := self._recv(0.0)) is not None:
                 self._handle(message)
                 if (now_ns := time.monotonic_ns()) >= drain_until_ns and (
@@ -615,8 +659,10 @@ class ControllerDaemon:
                 self._coast_skipped(tick.skipped)
             # The angle guard looks as far ahead as the loop has lately been late (replayed
             # from /timing: the same sum of its lateness and skipped periods).
+            work_start_ns = time.monotonic_ns()
             self._cycle(tick.lateness_ns + tick.skipped * self.period_ns)
             self._record_timing(tick.deadline_ns, tick.start_ns, tick.skipped)
+            work.took(time.monotonic_ns() - work_start_ns)
 
     def _await_final_status(self) -> None:
         """Record what arrives until the emulator's final counters have (bounded wait)."""
