@@ -365,7 +365,7 @@ def test_a_late_reading_corrects_the_estimate_as_if_it_had_come_in_time(age: int
     to its coasted prediction instead)."""
     from ballbeam.core.control import correct, predict
 
-    config, design, readings = _late_reading_setup()
+    _, design, readings = _late_reading_setup()
     law = TrackerLaw(design)
     first = 150  # well into the first swing: the servo turns fast
     for reading in readings[:first]:

@@ -103,22 +103,33 @@ def test_a_logs_lateness_counts_the_periods_skipped_before_a_cycle() -> None:
     assert behind_schedule_ns(timing).tolist() == [10_000, 20_000, 30_000, 3_040_000, 50_000]
 
 
-def test_it_spins_only_while_the_periods_cpu_time_leaves_room(clock: FakeClock) -> None:
+def test_it_spins_only_while_the_loops_cpu_time_leaves_room(clock: FakeClock) -> None:
     """A spin is CPU time, and SCHED_FIFO tasks that use 95 % of a CPU for a second are stopped
-    for the rest of it (kernel.sched_rt_runtime_us): after a cycle whose CPU time and the spin
-    would pass SPIN_CPU_SHARE of the period, the ticker sleeps to the deadline instead."""
+    for the rest of it (kernel.sched_rt_runtime_us): once the loop's average CPU time a cycle
+    and the spin would pass SPIN_CPU_SHARE of the period, the ticker sleeps to the deadline
+    instead, and spins again once the average has come down."""
     spin_ns = 200_000
     ticker = Ticker(PERIOD_NS, spin_ns=spin_ns, start_ns=0)
     ticker.wait()
-    for cycle_cpu_ns, spins in ((100_000, True), (700_000, False), (300_000, True)):
-        clock.now_ns += cycle_cpu_ns  # the cycle's work, all of it on the CPU
-        clock.cpu_ns += cycle_cpu_ns
-        before = clock.now_ns
-        tick = ticker.wait()
-        next_deadline_ns = tick.deadline_ns
-        slept_to_ns = before + clock.slept_ns[-1]
-        # (each clock reading costs the fake a microsecond)
-        assert abs(slept_to_ns - (next_deadline_ns - (spin_ns if spins else 0))) < 5_000
-        assert tick.lateness_ns < 10_000
-    assert ticker.spins_skipped == 1
-    assert ticker_module.SPIN_CPU_SHARE * PERIOD_NS // 100 < 700_000 + spin_ns
+
+    def cycles(cpu_ns: int, count: int) -> list[bool]:
+        spun = []
+        for _ in range(count):
+            clock.now_ns += cpu_ns  # the cycle's work, all of it on the CPU
+            clock.cpu_ns += cpu_ns
+            before = clock.now_ns
+            tick = ticker.wait()
+            slept_to_ns = before + clock.slept_ns[-1]
+            assert tick.lateness_ns < 10_000
+            # (each clock reading costs the fake a microsecond)
+            spun.append(abs(slept_to_ns - (tick.deadline_ns - spin_ns)) < 5_000)
+        return spun
+
+    assert all(cycles(500_000, 200))  # 50 % and the spin: room
+    busy = cycles(750_000, 200)  # 75 %: once the average passes 70 %, no spin
+    assert busy[0] and not any(busy[150:])
+    light = cycles(300_000, 200)
+    assert not light[0] and all(light[100:])
+    # an exponential average over CPU_AVERAGE_PERIODS: 200 periods on, the step has decayed
+    left = (1 - 1 / ticker_module.CPU_AVERAGE_PERIODS) ** 200
+    assert ticker.cycle_cpu_ns == pytest.approx(300_000 + left * 450_000, rel=0.01)

@@ -24,12 +24,15 @@ class Tick:
         return self.start_ns - self.deadline_ns
 
 
-# The share of a period's CPU time [%] up to which the ticker spins: a spin is CPU time, and
-# under SCHED_FIFO Linux lets real-time tasks use 95 % of a CPU a second
-# (kernel.sched_rt_runtime_us) and then stops them for the rest of it. A loop spinning 200 µs
-# every period beside a cycle busy with a flood of frames got there, and stalled ~50 ms once
+# The share of a period's CPU time [%] up to which the ticker spins, on average: a spin is CPU
+# time, and under SCHED_FIFO Linux lets real-time tasks use 95 % of a CPU a second
+# (kernel.sched_rt_runtime_us), then stops them for the rest of it. A loop spinning 200 µs
+# every period beside cycles busy with a flood of frames got there, and stalled ~50 ms once
 # a second: coasting, then 0 V, while the servo ran into its end stop.
-SPIN_CPU_SHARE = 80
+SPIN_CPU_SHARE = 90
+# The average is over about this many periods (an exponential one): the kernel's budget is
+# a second's, and one long cycle must not stop the spin that the next ones can afford.
+CPU_AVERAGE_PERIODS = 64
 
 
 class Ticker:
@@ -41,8 +44,9 @@ class Ticker:
         self.origin_ns = time.monotonic_ns() if start_ns is None else start_ns
         self._next_cycle = 0
         self.overruns = 0  # cycles that found their deadline already passed by a period
-        self.spins_skipped = 0  # waits that slept to the deadline: the cycle's CPU left no room
+        self.spins_skipped = 0  # waits that slept to the deadline: the loop's CPU left no room
         self._cpu_at_return_ns = time.thread_time_ns()
+        self.cycle_cpu_ns = 0.0  # the CPU time a cycle takes, on average (spins not counted)
 
     def wait(self) -> Tick:
         """Block until the next deadline. A cycle that starts a whole period or more after
@@ -54,8 +58,9 @@ class Ticker:
         now_ns = time.monotonic_ns()
         if now_ns - deadline_ns < self.period_ns:
             spin_ns = self.spin_ns
-            cycle_cpu_ns = time.thread_time_ns() - self._cpu_at_return_ns
-            if spin_ns and (cycle_cpu_ns + spin_ns) * 100 > self.period_ns * SPIN_CPU_SHARE:
+            used_ns = time.thread_time_ns() - self._cpu_at_return_ns
+            self.cycle_cpu_ns += (used_ns - self.cycle_cpu_ns) / CPU_AVERAGE_PERIODS
+            if spin_ns and (self.cycle_cpu_ns + spin_ns) * 100 > self.period_ns * SPIN_CPU_SHARE:
                 spin_ns = 0
                 self.spins_skipped += 1
             sleep_until_ns = deadline_ns - spin_ns

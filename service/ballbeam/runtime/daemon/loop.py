@@ -77,18 +77,20 @@ CATCH_UP_SHARE = 80
 
 class WorkReserve:
     """The time a cycle's own work (law, commands, records) takes: the median of the last
-    WORK_WINDOW cycles' and a quarter more. A median, not a peak: the one long cycle after a
-    stall (it coasts through the periods missed) kept a peak high for a hundred cycles, in
-    which the loop read too little of its bus to catch up."""
+    WORK_WINDOW cycles' and a quarter more, at most half a period (the loop always reads its
+    bus for that long). A median, not a peak: the one long cycle after a stall (it coasts
+    through the periods missed) kept a peak high for a hundred cycles, in which the loop read
+    too little of its bus to catch up."""
 
-    def __init__(self) -> None:
+    def __init__(self, period_ns: int) -> None:
         self._recent: deque[int] = deque(maxlen=WORK_WINDOW)
+        self._most_ns = period_ns // 2
         self.reserve_ns = 0
 
     def took(self, work_ns: int) -> None:
         self._recent.append(work_ns)
         median_ns = sorted(self._recent)[len(self._recent) // 2]
-        self.reserve_ns = median_ns + median_ns // 4
+        self.reserve_ns = min(median_ns + median_ns // 4, self._most_ns)
 
 
 WORK_WINDOW = 9
@@ -624,7 +626,7 @@ class ControllerDaemon:
         spin_ns = spin_ns_for_this_process(self.config.controller.spin_us)
         ticker = Ticker(self.period_ns, spin_ns=spin_ns, start_ns=origin_ns)
         self.mono_origin_ns, self.wall_origin_ns = origin_ns, self._wall_ns_at(origin_ns)
-        work = WorkReserve()
+        work = WorkReserve(self.period_ns)
         while not self.stop.is_set() and self.law.cycle < self.n_cycles:
             tick = ticker.wait()
             self.log_time_ns = self.wall_origin_ns + tick.cycle * self.period_ns
