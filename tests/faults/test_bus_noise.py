@@ -165,6 +165,10 @@ def test_a_flood_of_foreign_frames_is_rejected_and_counted_while_the_loop_holds_
     assert skipped <= MAX_SKIPPED_FRACTION * 4000, meta
     span_s = (int(timing["start_ns"][-1]) - int(timing["start_ns"][0])) * 1e-9
     assert abs(span_s - 3.999) < 0.01, span_s
+    # And the servo stayed within its limit (what failed in CI: under the flood a daemon
+    # short of CPU coasted, commanded 0 V, and the servo reached its end stop at 56°).
+    bound_deg = DEFAULTS.limits.theta_deg + DEFAULTS.controller.bound_tolerance_deg
+    assert summary["max_abs_theta_deg"] <= bound_deg, summary
     starved = faults(outcome.log, "sensor_timeout")
     if not starved:
         assert_settles_like(outcome, clean_realtime)

@@ -92,6 +92,7 @@ class TrackerLaw:
         # first is cycle ``_coasted_from``'s): what a late reading corrects from.
         self._coasted: list[Row4] = []
         self._coasted_from = 0
+        self._period_ns = round(design.period_s * 1e9)
 
     @property
     def period_s(self) -> float:
@@ -115,6 +116,9 @@ class TrackerLaw:
         if reading is not None and age_cycles > 0:
             self._take_late(reading, age_cycles)
             reading = None
+            # The estimate is a prediction over the sample's age: the angle guard looks that
+            # much further ahead, as it does over the periods a late loop skipped.
+            lateness_ns += age_cycles * self._period_ns
         prior = self.state.prediction
         self.state, output = control_cycle(self.design, self.state, reading, lateness_ns)
         if reading is None and prior is not None:

@@ -110,6 +110,8 @@ class DaemonStats:
     fault_cycles: int = 0
     overruns: int = 0
     skipped_periods: int = 0
+    spins_skipped: int = 0  # real time: waits that slept to the deadline, the CPU budget spent
+    cycle_cpu_us: int = 0  # ... the CPU time of a cycle at the end (the ticker's average)
     command_resends: int = 0
     own_frames: int = 0
     theta_violation_events: int = 0
@@ -665,6 +667,8 @@ class ControllerDaemon:
             self._cycle(tick.lateness_ns + tick.skipped * self.period_ns)
             self._record_timing(tick.deadline_ns, tick.start_ns, tick.skipped)
             work.took(time.monotonic_ns() - work_start_ns)
+            self._stats.spins_skipped = ticker.spins_skipped
+            self._stats.cycle_cpu_us = round(ticker.cycle_cpu_ns / 1000)
 
     def _await_final_status(self) -> None:
         """Record what arrives until the emulator's final counters have (bounded wait)."""
