@@ -88,3 +88,62 @@ def test_a_stream_of_noise_cannot_hold_a_non_blocking_read() -> None:
     reports: list[str] = []
     assert recv_frame(bus, 0.0, reports.append) is None  # type: ignore[arg-type]
     assert len(reports) == 64
+
+
+def test_the_receive_queue_goes_short_and_back_and_the_kernel_drops_what_it_cannot_hold() -> None:
+    """ReceiveQueue sets the socket's SO_RCVBUF short and back to the kernel's size: short, a
+    burst beyond it is dropped by the kernel (tail drop), long, the same burst is kept."""
+    import socket
+    import time
+
+    from ballbeam.config import DEFAULT_BUS_GROUP, BusSection
+    from ballbeam.runtime.bus import ReceiveQueue, free_udp_port, isolated_group, open_bus
+
+    section = BusSection(channel=isolated_group(DEFAULT_BUS_GROUP), port=free_udp_port())
+    sender, receiver = open_bus(section), open_bus(section)
+    queue = ReceiveQueue(receiver)
+    probe = socket.socket(fileno=receiver.fileno())
+    try:
+        long_bytes = probe.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+
+        def burst_kept() -> int:
+            for _ in range(150):
+                sender.send(can.Message(arbitration_id=0x7AB, data=bytes(8), is_extended_id=False))
+            time.sleep(0.1)
+            kept = 0
+            while recv_frame(receiver, 0.0, lambda _: None) is not None:
+                kept += 1
+            return kept
+
+        queue.set_short(True)
+        assert probe.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF) == 2 * queue.SHORT_BYTES
+        short_kept = burst_kept()
+        queue.set_short(False)
+        assert probe.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF) == long_bytes
+        assert burst_kept() == 150 > short_kept > 0
+        assert queue.shortened == 1 and queue.sizes() == f"{long_bytes} / {2 * queue.SHORT_BYTES}"
+    finally:
+        probe.detach()
+        queue.close()
+        sender.shutdown()
+        receiver.shutdown()
+
+
+def test_the_queue_goes_short_only_when_the_loop_stays_behind() -> None:
+    """A stall's catch-up (behind for fewer than SHORTEN_AFTER_CYCLES cycles) leaves the queue
+    long; behind for longer, short; caught up for RESTORE_AFTER_CYCLES, long again."""
+    from ballbeam.runtime.daemon.loop import (
+        RESTORE_AFTER_CYCLES,
+        SHORTEN_AFTER_CYCLES,
+        StandingQueue,
+    )
+
+    standing = StandingQueue()
+    burst = [True] * (SHORTEN_AFTER_CYCLES - 1) + [False]
+    assert not any(standing.update(behind) for behind in burst * 3)
+    states = [standing.update(True) for _ in range(SHORTEN_AFTER_CYCLES)]
+    assert states[-1] and not any(states[:-1])
+    # a cycle caught up now and then does not make it long again
+    assert all(standing.update(k % 50 != 0) for k in range(2 * RESTORE_AFTER_CYCLES))
+    states = [standing.update(False) for _ in range(RESTORE_AFTER_CYCLES)]
+    assert not states[-1] and all(states[:-1])

@@ -324,30 +324,52 @@ def open_bus(bus: BusSection) -> can.BusABC:
 
 
 MAX_MALFORMED_PER_CALL = 64
-# A node's receive queue [bytes; the kernel doubles it]: about 25 datagrams on loopback, a
-# few periods of the bench's own traffic. A deep queue keeps no frame worth having, it delays
-# them all: under a flood the daemon, reading at its limit, read every sample ~16 ms late out
-# of the kernel's default 208 KiB. With this much the kernel drops what the node could not
-# have read in time anyway (the sample counters show the loss).
-RECEIVE_QUEUE_BYTES = 16 * 1024
+class ReceiveQueue:
+    """A socket's receive queue, the kernel's own size or a short one (SO_RCVBUF).
 
+    A queue absorbs a burst: a process off its CPU for tens of ms reads the backlog after,
+    nothing lost. But a queue that stays full only delays every frame: under a flood the
+    daemon, reading at its limit, read every sample 16–29 ms late out of the kernel's default.
+    Short, the kernel drops what the reader could not have read in time anyway (the counters
+    show it). The loop asks for short while it stays behind the stream, long again once it
+    has kept up for a while (a standing queue, not a burst, is what to cut)."""
 
-def bound_receive_queue(bus: can.BusABC, size_bytes: int = RECEIVE_QUEUE_BYTES) -> str:
-    """Set the bus socket's receive buffer (SO_RCVBUF); what was set, for the log."""
-    try:
-        fd = bus.fileno()
-    except NotImplementedError:  # python-can's virtual bus, in-process
-        fd = -1
-    if fd < 0:
-        return "not set: the bus has no socket"
-    sock = socket.socket(fileno=fd)
-    try:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, size_bytes)
-        return str(sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF))
-    except OSError as error:
-        return f"not set: {error.strerror}"
-    finally:
-        sock.detach()  # the descriptor stays the bus's
+    SHORT_BYTES = 16 * 1024  # the kernel doubles it: ~25 datagrams on loopback, a few periods
+
+    def __init__(self, bus: can.BusABC) -> None:
+        try:
+            fd = bus.fileno()
+        except NotImplementedError:  # python-can's virtual bus, in-process: no socket
+            fd = -1
+        self._socket = socket.socket(fileno=fd) if fd >= 0 else None
+        self.short = False
+        self.shortened = 0  # how many times it was made short
+        self._long_bytes = self._size()
+
+    def _size(self) -> int:
+        if self._socket is None:
+            return 0
+        return self._socket.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+
+    def set_short(self, short: bool) -> None:
+        if short == self.short or self._socket is None:
+            return
+        # The kernel doubles what it is given; the long size was read back, so halve it.
+        size = self.SHORT_BYTES if short else self._long_bytes // 2
+        with contextlib.suppress(OSError):  # refused: the queue stays as it is
+            self._socket.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, size)
+            self.short = short
+            self.shortened += short
+
+    def sizes(self) -> str:
+        """The two sizes [bytes, as the kernel counts them], for the log."""
+        return f"{self._long_bytes} / {2 * self.SHORT_BYTES}"
+
+    def close(self) -> None:
+        """Forget the socket (the descriptor stays the bus's)."""
+        if self._socket is not None:
+            self._socket.detach()
+            self._socket = None
 
 
 def recv_frame(

@@ -39,7 +39,7 @@ from ballbeam.logs.topics import (
 from ballbeam.plant_assembly import plant_parameters, sensor_periods_per_cycle
 from ballbeam.protocol.frames import COUNTER_MODULUS, SENSOR_ID, CounterCheck, FrameContract
 from ballbeam.protocol.secoc import FrameAuthenticator
-from ballbeam.runtime.bus import recv_frame
+from ballbeam.runtime.bus import ReceiveQueue, recv_frame
 from ballbeam.runtime.daemon.command_out import CommandOut
 from ballbeam.runtime.daemon.intake import SensorIntake, SentCommands
 from ballbeam.runtime.owner_lock import OwnerLock
@@ -96,6 +96,27 @@ class WorkReserve:
 WORK_WINDOW = 9
 
 
+class StandingQueue:
+    """Whether the loop stays behind the stream: behind for SHORTEN_AFTER_CYCLES cycles in a
+    row, its receive queue goes short; caught up for RESTORE_AFTER_CYCLES, long again. A
+    stall's backlog is read in a few tens of cycles; a flood the loop cannot keep up with
+    keeps it behind for good."""
+
+    def __init__(self) -> None:
+        self.short = False
+        self._run = 0  # cycles in a row the other way than the queue is set for
+
+    def update(self, behind: bool) -> bool:
+        self._run = self._run + 1 if behind != self.short else 0
+        if self._run >= (RESTORE_AFTER_CYCLES if self.short else SHORTEN_AFTER_CYCLES):
+            self.short, self._run = not self.short, 0
+        return self.short
+
+
+SHORTEN_AFTER_CYCLES = 100
+RESTORE_AFTER_CYCLES = 500
+
+
 class PlantLostError(BallbeamError, TimeoutError):
     """The plant stopped sending sensor frames."""
 
@@ -112,6 +133,8 @@ class DaemonStats:
     skipped_periods: int = 0
     spins_skipped: int = 0  # real time: waits that slept to the deadline, the CPU budget spent
     cycle_cpu_us: int = 0  # ... the CPU time of a cycle at the end (the ticker's average)
+    receive_queue_bytes: str = ""  # ... the socket's queue, long / short (ReceiveQueue)
+    queue_shortened: int = 0  # ... times the loop stayed behind the stream and cut it short
     command_resends: int = 0
     own_frames: int = 0
     theta_violation_events: int = 0
@@ -629,6 +652,17 @@ class ControllerDaemon:
         ticker = Ticker(self.period_ns, spin_ns=spin_ns, start_ns=origin_ns)
         self.mono_origin_ns, self.wall_origin_ns = origin_ns, self._wall_ns_at(origin_ns)
         work = WorkReserve(self.period_ns)
+        queue, standing = ReceiveQueue(self.bus), StandingQueue()
+        self._stats.receive_queue_bytes = queue.sizes()
+        try:
+            self._realtime_cycles(ticker, work, queue, standing)
+        finally:
+            self._stats.queue_shortened = queue.shortened
+            queue.close()
+
+    def _realtime_cycles(
+        self, ticker: Ticker, work: WorkReserve, queue: ReceiveQueue, standing: StandingQueue
+    ) -> None:
         while not self.stop.is_set() and self.law.cycle < self.n_cycles:
             tick = ticker.wait()
             self.log_time_ns = self.wall_origin_ns + tick.cycle * self.period_ns
@@ -651,6 +685,7 @@ class ControllerDaemon:
                     now_ns >= catch_up_until_ns or not self.intake.behind(now_ns)
                 ):
                     break
+            queue.set_short(standing.update(self.intake.behind(time.monotonic_ns())))
             if self._stats.end_reason == "second_writer":
                 break  # no further drive: the shutdown commands 0 V now
             # Preempted before it read the bus, the cycle is the period it is in now: the

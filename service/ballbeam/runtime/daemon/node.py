@@ -24,7 +24,6 @@ from ballbeam.protocol.frames import FrameContract
 from ballbeam.protocol.secoc import FrameAuthenticator, RunKey
 from ballbeam.runtime.bus import (
     BUS_CHOICE_ENV,
-    bound_receive_queue,
     open_bus,
     resolve_auto,
     resolved_bus,
@@ -268,7 +267,6 @@ def _run_with_planner(
         if isinstance(law, ReplanningLaw) and planner is not None:
             _first_plan(law, planner)
         bus = open_bus(config.bus)
-        receive_queue = bound_receive_queue(bus)
         try:
             daemon = ControllerDaemon(config, law, bus, contract, recording, stop, auth,
                                       run_over_fd=link_fd, emulator_lock=emulator_lock,
@@ -278,7 +276,6 @@ def _run_with_planner(
                 stats = daemon.run()
             finally:
                 summary = daemon.stats.as_metadata(daemon.sensor_check)
-                summary["receive_queue_bytes"] = receive_queue
             log.info("daemon finished: %s", stats.end_reason)
         finally:
             bus.shutdown()
