@@ -324,6 +324,8 @@ def open_bus(bus: BusSection) -> can.BusABC:
 
 
 MAX_MALFORMED_PER_CALL = 64
+
+
 class ReceiveQueue:
     """A socket's receive queue, the kernel's own size or a short one (SO_RCVBUF).
 
