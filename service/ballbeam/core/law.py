@@ -114,11 +114,11 @@ class TrackerLaw:
         self, reading: SensorReading | None, lateness_ns: int = 0, age_cycles: int = 0
     ) -> CycleOutput:
         if reading is not None and age_cycles > 0:
-            self._take_late(reading, age_cycles)
+            if self._take_late(reading, age_cycles):
+                # The estimate is a prediction over the sample's age: the angle guard looks
+                # that much further ahead, as it does over the periods a late loop skipped.
+                lateness_ns += age_cycles * self._period_ns
             reading = None
-            # The estimate is a prediction over the sample's age: the angle guard looks that
-            # much further ahead, as it does over the periods a late loop skipped.
-            lateness_ns += age_cycles * self._period_ns
         prior = self.state.prediction
         self.state, output = control_cycle(self.design, self.state, reading, lateness_ns)
         if reading is None and prior is not None:
@@ -146,17 +146,18 @@ class TrackerLaw:
             del self._coasted[:excess]
             self._coasted_from += excess
 
-    def _take_late(self, reading: SensorReading, age_cycles: int) -> None:
+    def _take_late(self, reading: SensorReading, age_cycles: int) -> bool:
         """Correct the estimate by a reading of ``age_cycles`` ago, if that cycle coasted
         and is remembered; else (a reading taken since is newer, or it is older than kept)
-        it is history, and the cycle coasts."""
+        it is history, and the cycle coasts. Whether it was taken."""
         index = self.state.cycle - age_cycles - self._coasted_from
         if not 0 <= index < len(self._coasted):
-            return
+            return False
         self.state, later = late_correction(
             self.design, self.state, reading, self._coasted[index:]
         )
         self._coasted, self._coasted_from = list(later), self._coasted_from + index + 1
+        return True
 
     def lookahead(self) -> tuple[float, ...]:
         return lookahead_voltages(self.design, self.state)
