@@ -331,7 +331,8 @@ class ReceiveQueue:
 
     A queue absorbs a burst: a process off its CPU for tens of ms reads the backlog after,
     nothing lost. But a queue that stays full only delays every frame: under a flood the
-    daemon, reading at its limit, read every sample 16–29 ms late out of the kernel's default.
+    daemon, reading at its limit, read every sample tens of ms late out of the kernel's
+    default (docs/decisions.md).
     Short, the kernel drops what the reader could not have read in time anyway (the counters
     show it). The loop asks for short while it stays behind the stream, long again once it
     has kept up for a while (a standing queue, not a burst, is what to cut)."""

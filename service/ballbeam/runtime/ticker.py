@@ -26,9 +26,9 @@ class Tick:
 
 # The share of a period's CPU time [%] up to which the ticker spins, on average: a spin is CPU
 # time, and under SCHED_FIFO Linux lets real-time tasks use 95 % of a CPU a second
-# (kernel.sched_rt_runtime_us), then stops them for the rest of it. A loop spinning 200 µs
-# every period beside cycles busy with a flood of frames got there, and stalled ~50 ms once
-# a second: coasting, then 0 V, while the servo ran into its end stop.
+# (kernel.sched_rt_runtime_us), then stops them for the rest of it. A loop spinning before
+# every deadline beside cycles busy with a flood of frames got there, and stalled for tens of
+# ms once a second while the servo ran into its end stop (docs/decisions.md).
 SPIN_CPU_SHARE = 90
 # The average is over about this many periods (an exponential one): the kernel's budget is
 # a second's, and one long cycle must not stop the spin that the next ones can afford.

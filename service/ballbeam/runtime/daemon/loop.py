@@ -79,8 +79,8 @@ class WorkReserve:
     """The time a cycle's own work (law, commands, records) takes: the median of the last
     WORK_WINDOW cycles' and a quarter more, at most half a period (the loop always reads its
     bus for that long). A median, not a peak: the one long cycle after a stall (it coasts
-    through the periods missed) kept a peak high for a hundred cycles, in which the loop read
-    too little of its bus to catch up."""
+    through the periods missed) kept a peak high for long after, while the loop read too
+    little of its bus to catch up."""
 
     def __init__(self, period_ns: int) -> None:
         self._recent: deque[int] = deque(maxlen=WORK_WINDOW)
@@ -658,6 +658,8 @@ class ControllerDaemon:
             self._realtime_cycles(ticker, work, queue, standing)
         finally:
             self._stats.queue_shortened = queue.shortened
+            self._stats.spins_skipped = ticker.spins_skipped
+            self._stats.cycle_cpu_us = round(ticker.cycle_cpu_ns / 1000)
             queue.close()
 
     def _realtime_cycles(
@@ -670,7 +672,7 @@ class ControllerDaemon:
             # (the rest is read next cycle, or dropped by the kernel if its buffer overflows).
             # Behind the stream, read on, but never into the time the cycle's own work needs
             # before the next deadline: a catch-up that made the cycle overrun would put the
-            # loop further behind at every period (under a flood it did, for 0.4 s at 0 V).
+            # loop further behind at every period (under a flood it did).
             # (The ticker's spin gives way to reading: it spins only where the CPU allows.)
             catch_up_until_ns = min(
                 tick.start_ns + self.period_ns * CATCH_UP_SHARE // 100,
@@ -702,8 +704,6 @@ class ControllerDaemon:
             self._cycle(tick.lateness_ns + tick.skipped * self.period_ns)
             self._record_timing(tick.deadline_ns, tick.start_ns, tick.skipped)
             work.took(time.monotonic_ns() - work_start_ns)
-            self._stats.spins_skipped = ticker.spins_skipped
-            self._stats.cycle_cpu_us = round(ticker.cycle_cpu_ns / 1000)
 
     def _await_final_status(self) -> None:
         """Record what arrives until the emulator's final counters have (bounded wait)."""
