@@ -97,6 +97,7 @@ def soak() -> ModuleType:
     return import_bench("recover_soak")
 
 
+@pytest.mark.realtime  # runs on wall time: a worker beside it starves the recorder's writer
 def test_a_run_whose_daemon_is_killed_recovers_its_log(tmp_path: Path, soak: ModuleType) -> None:
     """SIGKILL the daemon of real-time runs at seeded random moments: ``ballbeam run`` makes
     each log whole (a seeking reader opens it) and loses at most about one recorder flush."""

@@ -122,11 +122,17 @@ def scheduled_realtime() -> bool:
 
 
 def leave_real_time() -> None:
-    """Put the calling thread (on Linux the policy is a thread's) at normal scheduling if it
-    inherited a real-time one: work that serves the loop (its recorder's writer, its planner)
-    must never hold the loop's CPU. At the loop's own SCHED_FIFO priority on its CPU, a
-    thread keeps that CPU until it blocks: the loop's timer wakes it in vain, and it cannot
-    even ask for the interpreter lock. Where the system refuses, nothing changes."""
+    """Put the calling thread (on Linux policy and CPU mask are a thread's) at normal
+    scheduling on any CPU if it inherited the loop's real-time policy and CPU: work that
+    serves the loop (its recorder's writer, its planner) must never hold the loop's CPU, nor
+    be starved on it. At the loop's own SCHED_FIFO priority on its CPU, a thread keeps that
+    CPU until it blocks: the loop's timer wakes it in vain, and it cannot even ask for the
+    interpreter lock. At normal priority but still pinned there, it gets only what the loop
+    and every other job on that CPU leave (a killed run's writer lost 128 ms of log so).
+    Where the system refuses, nothing changes; the kernel keeps the mask within the CPUs the
+    process's cgroup allows."""
     with contextlib.suppress(OSError, AttributeError):
         if os.sched_getscheduler(0) != os.SCHED_OTHER:
             os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    with contextlib.suppress(OSError, AttributeError, TypeError):
+        os.sched_setaffinity(0, range(os.cpu_count() or 1))
