@@ -21,8 +21,10 @@ from ballbeam.logs import design_record
 from ballbeam.logs.reader import read_log
 from ballbeam.logs.recorder import Recorder
 from ballbeam.logs.recording import RunRecording
+from ballbeam.logs.topics import TruthRecord
 from ballbeam.protocol.frames import (
     SENSOR_ID,
+    TRUTH_ANGLE_ID,
     VOLTAGE_COMMAND_ID,
     FrameContract,
     SensorFrame,
@@ -182,6 +184,44 @@ def test_an_authenticated_intake_refuses_forged_replayed_and_reordered_frames_by
     # A command frame with the run's key that the daemon never sent: a second writer.
     intake.handle(fd(VoltageCommand(0, 1.0, True, 3), plant), 0, 0)
     assert intake.second_writer_frames == 1 and intake.rejected["foreign_command"] == 1
+
+
+def test_an_authenticated_sensor_frame_brings_its_samples_truth(
+    recording: RunRecording, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """On the authenticated bus the plant sends one frame a sample, its truth in the extension:
+    the sample is taken and its truth recorded at the sample's log time, as the two truth
+    frames would be; a sensor frame whose truth is not its sample's is refused whole, and an
+    extension on any other frame is refused for its length."""
+    secret = secrets.token_bytes(32)
+    plant = FrameAuthenticator(secret)
+    intake = SensorIntake(CONTRACT, recording, auth=FrameAuthenticator(secret))
+    truths: list[tuple[int, TruthRecord]] = []
+    write = recording.write
+
+    def spy(topic, log_time_ns, record):  # type: ignore[no-untyped-def]
+        if isinstance(record, TruthRecord):
+            truths.append((log_time_ns, record))
+        write(topic, log_time_ns, record)
+
+    monkeypatch.setattr(recording, "write", spy)
+
+    def sample(counter: int, truth: bytes, frame_id: int = SENSOR_ID) -> can.Message:
+        payload = CONTRACT.encode_sensor(counter, 10, -20, 0) if frame_id == SENSOR_ID else (
+            CONTRACT.encode_truth_angle(counter, 0.0, 0.0)
+        )
+        return can.Message(arbitration_id=frame_id, data=plant.protect(frame_id, payload, truth),
+                           is_extended_id=False, is_fd=True)
+
+    assert intake.handle(sample(5, CONTRACT.encode_truth(5, 0.5, -1.0, 0.1, 0.2)), 123, 0) == "ok"
+    assert intake.take() == (SensorFrame(5, 10, -20, 0), 0)
+    assert [(at, r.counter) for at, r in truths] == [(123, 5)]
+    assert truths[0][1][1:5] == pytest.approx((0.5, -1.0, 0.2, 0.1), abs=1e-5)  # quantised
+    assert intake.handle(sample(6, CONTRACT.encode_truth(7, 0.5, -1.0, 0.1, 0.2)), 124, 1) is None
+    assert intake.take() is None and len(truths) == 1
+    wrong_id = sample(6, CONTRACT.encode_truth(6, 0.5, -1.0, 0.1, 0.2), TRUTH_ANGLE_ID)
+    assert intake.handle(wrong_id, 125, 1) is None and len(truths) == 1
+    assert dict(intake.rejected) == {"range": 1, "length": 1}
 
 
 def test_a_classic_intake_takes_three_valid_commands_it_never_sent_for_a_second_writer(

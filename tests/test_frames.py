@@ -42,6 +42,7 @@ from ballbeam.protocol.frames import (
     e2e_profile5_crc,
     next_counter,
 )
+from ballbeam.protocol.secoc import EXTENSION_BYTES
 
 DBC_PATH = Path(ballbeam.protocol.__file__).parent / "ballbeam.dbc"
 IDS = (VOLTAGE_COMMAND_ID, SENSOR_ID, TRUTH_ANGLE_ID, TRUTH_BALL_ID, PLANT_STATUS_ID)
@@ -188,6 +189,40 @@ def test_truth_ball_round_trip(
     assert frame.counter == counter
     assert_within_half_lsb(frame.position_m, position, BALL_POS_LSB)
     assert_within_half_lsb(frame.velocity_m_s, velocity, BALL_VEL_LSB)
+
+
+@given(counters, physical(THETA_LSB, INT20_MAX), physical(BALL_POS_LSB, INT20_MAX))
+def test_a_sensor_frames_truth_is_the_two_truth_payloads_and_zeros(
+    contract: FrameContract, counter: int, theta: float, position: float
+) -> None:
+    """On the authenticated bus the truth rides in the sensor frame's 40-byte extension:
+    exactly the 0x102 and 0x103 payloads the truth frames would carry (their bits are pinned
+    above), then zeros; it decodes to those frames."""
+    angle_payload = contract.encode_truth_angle(counter, theta, -theta)
+    ball_payload = contract.encode_truth_ball(counter, position, -position)
+    extension = contract.encode_truth(counter, theta, -theta, position, -position)
+    assert extension == angle_payload + ball_payload + bytes(24)
+    assert len(extension) == EXTENSION_BYTES
+    assert contract.decode_truth(extension, counter) == (
+        contract.decode(0x102, angle_payload), contract.decode(0x103, ball_payload)
+    )
+
+
+def test_a_truth_extension_that_is_not_its_samples_is_refused(contract: FrameContract) -> None:
+    extension = contract.encode_truth(7, 0.1, 0.2, 0.03, 0.04)
+    cases = {
+        "other sample": (extension, 8, "range"),
+        "short": (extension[:-1], 7, "length"),
+        "padding": (extension[:-1] + b"\x01", 7, "range"),
+        "angle's CRC": (bytes([extension[0] ^ 1]) + extension[1:], 7, "crc"),
+        "ball's CRC": (extension[:8] + bytes([extension[8] ^ 1]) + extension[9:], 7, "crc"),
+        "two samples": (extension[:8] + contract.encode_truth_ball(8, 0.03, 0.04)
+                        + extension[16:], 7, "range"),
+    }
+    for name, (data, counter, reason) in cases.items():
+        with pytest.raises(FrameRejectedError) as refused:
+            contract.decode_truth(data, counter)
+        assert refused.value.reason == reason, name
 
 
 def test_extremes_round_trip(contract: FrameContract) -> None:

@@ -204,22 +204,27 @@ class PlantEmulator:
         self.status_counter = 0
 
     # -- frames -------------------------------------------------------------------------------
-    def _send(self, arbitration_id: int, data: bytes) -> None:
+    def _send(self, arbitration_id: int, data: bytes, extension: bytes = b"") -> None:
+        """``extension``: authenticated bus only (protocol/secoc.py)."""
         if self.auth is None:
             message = can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=False)
         else:
             message = can.Message(
                 arbitration_id=arbitration_id,
-                data=self.auth.protect(arbitration_id, data),
+                data=self.auth.protect(arbitration_id, data, extension),
                 is_extended_id=False,
                 is_fd=True,
             )
         self.bus.send(message)
 
     def _send_sample(self) -> None:
-        """The sensor frame first (the controller can start its cycle at once), then the
-        truth frames, all with this sample's counter."""
+        """This sample's sensor frame and its truth, all with this sample's counter. On the
+        authenticated (CAN FD) bus the truth rides in the sensor frame's extension, one frame
+        for both; else, or when the sensor frame is lost, it follows in the two truth frames
+        (the log keeps the truth of every sample)."""
+        theta, theta_rate, velocity, position = (float(v) for v in self.state)
         loss = self.config.plant.sensor_loss
+        truth = b""
         if loss and self.fault_rng.random() < loss:
             self.counters.dropped_by_injection += 1
         else:
@@ -227,18 +232,21 @@ class PlantEmulator:
             status = (STATUS_WATCHDOG if self.watchdog_zeroed else 0) | (
                 0 if self.started else STATUS_HELD
             )
-            self._send(
-                SENSOR_ID,
-                self.contract.encode_sensor(
-                    self.counter, reading.angle_counts, reading.position_counts, status
-                ),
+            sensor = self.contract.encode_sensor(
+                self.counter, reading.angle_counts, reading.position_counts, status
             )
+            truth = b"" if self.auth is None else self.contract.encode_truth(
+                self.counter, theta, theta_rate, position, velocity
+            )
+            self._send(SENSOR_ID, sensor, truth)
             self.counters.samples_sent += 1
-        theta, theta_rate, velocity, position = (float(v) for v in self.state)
-        self._send(
-            TRUTH_ANGLE_ID, self.contract.encode_truth_angle(self.counter, theta, theta_rate)
-        )
-        self._send(TRUTH_BALL_ID, self.contract.encode_truth_ball(self.counter, position, velocity))
+        if not truth:
+            self._send(
+                TRUTH_ANGLE_ID, self.contract.encode_truth_angle(self.counter, theta, theta_rate)
+            )
+            self._send(
+                TRUTH_BALL_ID, self.contract.encode_truth_ball(self.counter, position, velocity)
+            )
         if self._status_pending:
             self._send(PLANT_STATUS_ID, self._status_pending.popleft())
 

@@ -28,8 +28,22 @@ import numpy as np
 from ballbeam.config import DEFAULT_BUS_GROUP, load_config
 from ballbeam.evaluation.summary import summarise
 from ballbeam.logs.reader import RunLog, read_log
-from ballbeam.protocol.frames import VOLTAGE_COMMAND_ID, FrameContract, VoltageCommand
-from ballbeam.protocol.secoc import SECRET_BYTES, FrameAuthenticator, is_authenticated_length
+from ballbeam.protocol.frames import (
+    SENSOR_ID,
+    TRUTH_ANGLE_ID,
+    VOLTAGE_COMMAND_ID,
+    FrameContract,
+    SensorFrame,
+    TruthAngle,
+    VoltageCommand,
+)
+from ballbeam.protocol.secoc import (
+    EXTENDED_LENGTH,
+    SECRET_BYTES,
+    FrameAuthenticator,
+    extension_of,
+    is_authenticated_length,
+)
 from ballbeam.runtime.bus import IPV6_MULTICAST_ALL, free_udp_port, isolated_group, multicast_scope
 from ballbeam.runtime.launcher import secret_pipe
 from ballbeam.runtime.owner_lock import PEER_LOCK_ENV, create_owner_lock
@@ -182,6 +196,27 @@ def decoded(heard: Heard) -> object | None:
         return CONTRACT.decode(heard.arbitration_id, data)
     except ValueError:
         return None
+
+
+def truth_angles_heard(frames: list[Heard]) -> list[tuple[int, TruthAngle]]:
+    """(time_ns, true servo state) of every sample heard: from a truth frame, or from the
+    extension of an authenticated sensor frame, which carries its sample's truth."""
+    angles = []
+    for heard in frames:
+        if heard.is_extended_id:
+            continue
+        if heard.arbitration_id == TRUTH_ANGLE_ID:
+            angle = decoded(heard)
+        elif heard.arbitration_id == SENSOR_ID and len(heard.data) == EXTENDED_LENGTH:
+            sensor = decoded(heard)
+            if not isinstance(sensor, SensorFrame):
+                continue
+            angle, _ = CONTRACT.decode_truth(extension_of(heard.data), sensor.counter)
+        else:
+            continue
+        if isinstance(angle, TruthAngle):
+            angles.append((heard.time_ns, angle))
+    return angles
 
 
 def is_enabled_command(heard: Heard) -> bool:

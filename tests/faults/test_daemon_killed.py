@@ -23,9 +23,7 @@ from ballbeam.logs.reader import read_log
 from ballbeam.protocol.frames import (
     SENSOR_ID,
     STATUS_WATCHDOG,
-    TRUTH_ANGLE_ID,
     SensorFrame,
-    TruthAngle,
 )
 
 from ..conftest import ballbeam
@@ -37,6 +35,7 @@ from .harness import (
     commands_heard,
     decoded,
     figure,
+    truth_angles_heard,
     watchdog_trips_ms,
 )
 
@@ -113,11 +112,7 @@ def kill_daemon_once(tmp: Path, mode: str, delay_s: float, subprocess_replay: bo
     # zone would keep it turning at ≥ 0.2 rad/s, unless the servo's hard stop holds it (the
     # watchdog may let it get there): at the stop, the watchdog trip asserted above and the
     # status bit are the proof. Lock-step, the plant waits, frozen, resending the one sample.
-    angles = [
-        (h.time_ns, a)
-        for h in frames
-        if h.arbitration_id == TRUTH_ANGLE_ID and isinstance(a := decoded(h), TruthAngle)
-    ]
+    angles = truth_angles_heard(frames)
     later = [a for t, a in angles if t >= tripped.time_ns + 100_000_000]
     assert len(later) >= 2
     after_kill = [a for t, a in angles if t >= kill_ns]

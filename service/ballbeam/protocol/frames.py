@@ -42,6 +42,10 @@ COUNTER_MODULUS: Final = 256
 LOOKAHEAD_SLOTS: Final = 20
 LOOKAHEAD_MV_PER_V: Final = 1000
 NO_LOOKAHEAD_RAW: Final = -32768
+# A sensor frame's truth (authenticated CAN FD bus only): the truth frames' two payloads, as
+# each would be sent alone, then zeros to the same 40 bytes as a look-ahead. One frame a
+# sample instead of three: each frame a node reads costs it a share of its period.
+TRUTH_EXTENSION_BYTES: Final = 2 * LOOKAHEAD_SLOTS
 
 DBC_RESOURCE: Final = "ballbeam.dbc"  # package data of ballbeam.protocol
 
@@ -417,6 +421,34 @@ class FrameContract:
     def encode_truth_ball(self, counter: int, position_m: float, velocity_m_s: float) -> bytes:
         """0x103 payload. Resolution 1e-6 m, 1e-5 m/s (ranges ±0.524 m, ±5.24 m/s)."""
         return self._encode(self._by_id[TRUTH_BALL_ID], (counter, position_m, velocity_m_s))
+
+    def encode_truth(
+        self, counter: int, theta_rad: float, theta_rate_rad_s: float, position_m: float,
+        velocity_m_s: float,
+    ) -> bytes:
+        """A sensor frame's truth extension: the 0x102 and 0x103 payloads of its sample, then
+        zeros to TRUTH_EXTENSION_BYTES."""
+        both = self.encode_truth_angle(counter, theta_rad, theta_rate_rad_s) + (
+            self.encode_truth_ball(counter, position_m, velocity_m_s)
+        )
+        return both.ljust(TRUTH_EXTENSION_BYTES, b"\0")
+
+    def decode_truth(self, extension: bytes, counter: int) -> tuple[TruthAngle, TruthBall]:
+        """The truth a sensor frame with ``counter`` carries; FrameRejectedError (reasons as
+        :meth:`decode`'s, the id the sensor's) unless it is the extension's length, each
+        payload is valid, both are of ``counter`` and the rest is zeros."""
+        if len(extension) != TRUTH_EXTENSION_BYTES:
+            raise FrameRejectedError("length", SENSOR_ID, f"truth of {len(extension)} bytes, "
+                                     f"expected {TRUTH_EXTENSION_BYTES}")
+        if any(extension[2 * FRAME_LENGTH:]):
+            raise FrameRejectedError("range", SENSOR_ID, "truth padding is not zeros")
+        angle = self.decode(TRUTH_ANGLE_ID, extension[:FRAME_LENGTH])
+        ball = self.decode(TRUTH_BALL_ID, extension[FRAME_LENGTH:2 * FRAME_LENGTH])
+        assert isinstance(angle, TruthAngle) and isinstance(ball, TruthBall)
+        if angle.counter != counter or ball.counter != counter:
+            raise FrameRejectedError("range", SENSOR_ID, f"truth counters {angle.counter}, "
+                                     f"{ball.counter} for sample {counter}")
+        return angle, ball
 
     def encode_plant_status(self, counter: int, field: int, final: bool, value: int) -> bytes:
         """0x104 payload: counter ``field`` (an index of PLANT_STATUS_FIELDS) is ``value``

@@ -11,9 +11,10 @@ therefore sent as a 24-byte CAN FD frame::
     bytes 16..23  MAC: HMAC-SHA256(secret, id (uint32 LE) ‖ freshness ‖ payload), truncated
                   to 64 bits
 
-A voltage command may carry an extension between the classic payload and the freshness: the
-controller's look-ahead (``frames.encode_lookahead``, 40 bytes), making a 64-byte frame whose
-MAC covers the payload and the extension together.
+A frame may carry an extension between the classic payload and the freshness, making a
+64-byte frame whose MAC covers the payload and the extension together: a voltage command the
+controller's look-ahead (``frames.encode_lookahead``, 40 bytes), a sensor frame its sample's
+truth (``frames.FrameContract.encode_truth``, 40 bytes).
 
 keyed by a per-run 32-byte secret the launcher hands to both processes through an inherited
 pipe (never argv, never the environment, never the log). Each process keeps it in a
@@ -47,7 +48,7 @@ FRESHNESS_BYTES: Final = 8
 MAC_BYTES: Final = 8
 TRAILER_BYTES: Final = FRESHNESS_BYTES + MAC_BYTES
 AUTHENTICATED_LENGTH: Final = CLASSIC_LENGTH + TRAILER_BYTES  # a CAN FD length
-EXTENSION_BYTES: Final = 40  # a command's look-ahead (frames.LOOKAHEAD_SLOTS int16 values)
+EXTENSION_BYTES: Final = 40  # a command's look-ahead or a sample's truth (protocol/frames.py)
 EXTENDED_LENGTH: Final = AUTHENTICATED_LENGTH + EXTENSION_BYTES  # 64: CAN FD's largest frame
 _LENGTHS: Final = (AUTHENTICATED_LENGTH, EXTENDED_LENGTH)
 DEFAULT_WINDOW_NS: Final = 1_000_000_000

@@ -1,7 +1,8 @@
 """Sensor intake: every frame the daemon hears, judged and recorded.
 
 Sensor frames must pass the contract and their counter check to become the latest sample;
-truth frames are paired (angle + ball, same counter) and recorded at their sample's time; the
+truth (in the sensor frame's extension on an authenticated bus, else in two frames paired by
+counter, angle + ball) is recorded at its sample's time; the
 emulator's status frames are gathered into whole snapshots of its counters (``/plant_status``); the
 daemon's own commands looped back by the bus (the bytes it sent) are counted and dropped; a
 command frame it did not send is someone else's: recorded and counted as rejected
@@ -48,10 +49,11 @@ from ballbeam.protocol.frames import (
     next_counter,
 )
 from ballbeam.protocol.secoc import (
-    AUTHENTICATED_LENGTH,
     CLASSIC_LENGTH,
     FrameAuthenticator,
     OwnVerdict,
+    extension_of,
+    is_authenticated_length,
 )
 
 MAX_RECORDED_REJECTIONS = 1000  # per reason: beyond this only the count grows (no log floods)
@@ -233,17 +235,25 @@ class SensorIntake:
             return None
         auth = self.auth
         authenticated = auth is None  # a classic bus: the contract is all there is
-        if auth is not None and len(data) == AUTHENTICATED_LENGTH:
+        extension = b""
+        if auth is not None and is_authenticated_length(len(data)):
             auth_verdict = auth.verify(message.arbitration_id, data)
             if auth_verdict != "ok":
                 self.reject(auth_verdict, f"frame 0x{message.arbitration_id:03X}: {auth_verdict}",
                             log_time_ns, cycle)
                 return None
+            extension = extension_of(data)
             data = data[:CLASSIC_LENGTH]
             authenticated = True
+        truth: tuple[TruthAngle, TruthBall] | None = None
         try:
             # Any other length is judged by the contract first, so noise keeps its reasons.
             frame = self.contract.decode(message.arbitration_id, data)
+            if extension:  # only a sensor frame carries one here (its sample's truth)
+                if not isinstance(frame, SensorFrame):
+                    raise FrameRejectedError("length", message.arbitration_id,
+                                             f"{len(extension)} bytes beyond its payload")
+                truth = self.contract.decode_truth(extension, frame.counter)
         except FrameRejectedError as error:
             self.reject(error.reason, str(error), log_time_ns, cycle)
             return None
@@ -262,6 +272,8 @@ class SensorIntake:
             elif verdict == "stale":
                 self.reject("stale", f"sensor counter {frame.counter} is older than the last",
                             log_time_ns, cycle)
+            if truth is not None:
+                self._record_truth(*truth, log_time_ns)
             return verdict
         if isinstance(frame, PlantStatusFrame):
             # Authenticated (or, on a classic bus, contract-valid) frames only reach here.
@@ -274,21 +286,25 @@ class SensorIntake:
         elif isinstance(frame, TruthBall):
             angle = self._truth_angle
             if angle is not None and angle.counter == frame.counter:
-                # Truth follows its sensor frame: log it at the time of that sample (now, if
-                # that sample's sensor frame never came: counters wrap, so no older match).
-                sample = self._last_sample_log
-                at_ns = sample[1] if sample and sample[0] == frame.counter else log_time_ns
-                sample_index = self.plant_clock.index(frame.counter)
-                self.recording.write(TRUTH, at_ns, TruthRecord(
-                    frame.counter, angle.theta_rad, angle.theta_rate_rad_s,
-                    frame.velocity_m_s, frame.position_m,
-                    sample_index, sample_index * self.sample_period_s,
-                ))
+                self._record_truth(angle, frame, log_time_ns)
                 self._truth_angle = None
         else:
             self.reject("direction", f"unexpected {type(frame).__name__} frame", log_time_ns,
                         cycle)
         return None
+
+    def _record_truth(self, angle: TruthAngle, ball: TruthBall, log_time_ns: int) -> None:
+        """A sample's truth (one counter), logged at the time of that sample: truth follows
+        its sensor frame, or rides in it; now, if that sample's sensor frame never came
+        (counters wrap, so no older match)."""
+        sample = self._last_sample_log
+        at_ns = sample[1] if sample and sample[0] == ball.counter else log_time_ns
+        sample_index = self.plant_clock.index(ball.counter)
+        self.recording.write(TRUTH, at_ns, TruthRecord(
+            ball.counter, angle.theta_rad, angle.theta_rate_rad_s,
+            ball.velocity_m_s, ball.position_m,
+            sample_index, sample_index * self.sample_period_s,
+        ))
 
     def _own(self, data: bytes) -> OwnVerdict:
         """Whose is this command frame: ``"echo"`` (ours, heard back once), ``"replayed"``
