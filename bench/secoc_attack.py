@@ -6,8 +6,8 @@ private interface-local group, during ``ballbeam run``.
     .venv/bin/python bench/secoc_attack.py --mode lockstep --pairs 1
 
 Clean and attacked runs alternate (the machine's load then falls on both alike). Prints per run
-the rest time, the daemon's rejections by reason, the plant emulator's and what the flood sent,
-then the accepted count (valid commands the plant applied beyond those the daemon sent, and
+the rest time, the periods the loop skipped, the daemon's rejections by reason, the plant
+emulator's and what the flood sent, then the accepted count (valid commands the plant applied beyond those the daemon sent, and
 second-writer frames: both must be 0) and the spread of rest times.
 """
 
@@ -66,6 +66,7 @@ def one_run(
         "end_reason": summary["end_reason"],
         "rest_time_s": summary["rest_time_s"],
         "overruns": int(meta.get("overruns", 0)),
+        "skipped_periods": int(meta.get("skipped_periods", 0)),
         "plant_missed_periods": summary.get("plant_missed_periods"),
         "lateness_max_us": summary.get("lateness_max_us"),
         "frames_lost": summary.get("frames_lost"),
@@ -115,6 +116,8 @@ def main() -> None:
         "clean_spread_ms": round((max(clean) - min(clean)) * 1e3, 1),
         "median_difference_ms": round((statistics.median(attacked_rest)
                                        - statistics.median(clean)) * 1e3, 1),
+        "skipped_periods_clean": [r["skipped_periods"] for r in rows if not r["attacked"]],
+        "skipped_periods_attacked": [r["skipped_periods"] for r in rows if r["attacked"]],
         "second_writer_frames": sum(r["second_writer_frames"] for r in rows),
     }, indent=1))
 
