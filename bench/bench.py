@@ -219,15 +219,16 @@ def bench_lockstep(duration_s: float) -> list[dict[str, Any]]:
     return rows
 
 
-# Lock-step's frames: sensor and two truth frames out of the plant, one command back; plain,
-# or authenticated as a run on this bus is by default (the same MACs made and checked).
+# Lock-step's frames: on the classic bus the sensor and two truth frames out of the plant, one
+# command back; authenticated (a run's default on this bus), one 64-byte sensor frame that
+# carries the truth, one command back, the same MACs made and checked.
 FLOOR_PATTERNS = {
     "bare ping-pong (1 frame + 1), blocking": (1, False, False),
-    "our pattern (3 frames + 1), blocking": (3, False, False),
-    "our pattern, authenticated, blocking": (3, False, True),
+    "classic pattern (3 frames + 1), blocking": (3, False, False),
+    "our pattern, authenticated (1 + 1), blocking": (1, False, True),
     "bare ping-pong (1 frame + 1), polling": (1, True, False),
-    "our pattern (3 frames + 1), polling": (3, True, False),
-    "our pattern, authenticated, polling": (3, True, True),
+    "classic pattern (3 frames + 1), polling": (3, True, False),
+    "our pattern, authenticated (1 + 1), polling": (1, True, True),
 }
 
 

@@ -22,7 +22,7 @@ from typing import Any
 import can
 
 from ballbeam.config import BusSection
-from ballbeam.protocol.secoc import FrameAuthenticator
+from ballbeam.protocol.secoc import EXTENSION_BYTES, FrameAuthenticator
 from ballbeam.runtime.bus import (
     free_udp_port,
     isolated_group,
@@ -63,7 +63,8 @@ def _receive(opened: can.BusABC, poll: bool, timeout_s: float) -> can.Message | 
 class _Frames:
     """Frames as the pattern's runs make and judge them: plain 8-byte data, or (``secret``)
     authenticated as a run's are (protocol/secoc.py: a MAC and freshness on every frame sent,
-    every frame heard judged, a peer's by ``verify`` and one's own echo by ``own_frame``)."""
+    every frame heard judged, a peer's by ``verify`` and one's own echo by ``own_frame``); the
+    plant's frame then 64 bytes, as a sensor frame with its sample's truth is."""
 
     def __init__(self, secret: bytes | None) -> None:
         self.auth = FrameAuthenticator(secret) if secret is not None else None
@@ -72,8 +73,10 @@ class _Frames:
         payload = struct.pack("<Q", cycle)
         if self.auth is None:
             return can.Message(arbitration_id=arbitration_id, data=payload, is_extended_id=False)
+        extension = bytes(EXTENSION_BYTES) if arbitration_id != COMMAND_ID else b""
         return can.Message(
-            arbitration_id=arbitration_id, data=self.auth.protect(arbitration_id, payload),
+            arbitration_id=arbitration_id,
+            data=self.auth.protect(arbitration_id, payload, extension),
             is_extended_id=False, is_fd=True,
         )
 

@@ -7,8 +7,9 @@ private interface-local group, during ``ballbeam run``.
 
 Clean and attacked runs alternate (the machine's load then falls on both alike). Prints per run
 the rest time, the periods the loop skipped, the daemon's rejections by reason, the plant
-emulator's and what the flood sent, then the accepted count (valid commands the plant applied beyond those the daemon sent, and
-second-writer frames: both must be 0) and the spread of rest times.
+emulator's and what the flood sent, then the accepted count (valid commands the plant applied
+beyond those the daemon sent, and second-writer frames: both must be 0), the spread of rest
+times and the periods skipped, clean and attacked.
 """
 
 from __future__ import annotations
