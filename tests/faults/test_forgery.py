@@ -352,6 +352,10 @@ def test_the_mac_is_hmac_sha256_truncated_over_id_freshness_and_payload() -> Non
     assert sender.own_frame(VOLTAGE_COMMAND_ID, receiver.protect(VOLTAGE_COMMAND_ID, payload)) \
         == "not_sent"
     assert sender.own_frame(VOLTAGE_COMMAND_ID, other_key) == "invalid"
+    # One of its own frames with a byte changed (its freshness is the sender's own, which the
+    # sender takes its very bytes for without a MAC): a stranger's, not an echo.
+    assert sender.own_frame(VOLTAGE_COMMAND_ID, bytes(tampered)) == "invalid"
+    assert sender.own_frame(VOLTAGE_COMMAND_ID, later[:8] + later[8:16] + bytes(8)) == "invalid"
 
 
 def test_a_commands_lookahead_is_covered_by_the_same_mac() -> None:
