@@ -26,7 +26,7 @@ def floors() -> ModuleType:
 @pytest.mark.bus
 @pytest.mark.parametrize(
     ("plant_frames", "poll", "authenticated"),
-    [(1, False, False), (3, True, False), (3, False, True)],
+    [(1, False, False), (3, True, False), (1, False, True)],
 )
 def test_exchange_floor_answers_every_cycle(
     floors: ModuleType, plant_frames: int, poll: bool, authenticated: bool
@@ -49,16 +49,18 @@ def test_exchange_floor_answers_every_cycle(
 def test_the_authenticated_floor_makes_and_judges_frames_as_a_run_does(
     floors: ModuleType,
 ) -> None:
-    """A frame of the authenticated floor is a run's SecOC frame (24 bytes, CAN FD); the peer
-    with the secret reads its cycle, one with another secret refuses it, and a side's own frame
-    heard back is its echo, not a cycle."""
+    """A frame of the authenticated floor is a run's SecOC frame (CAN FD: the plant's 64 bytes,
+    as a sensor frame with its truth, the command's 24); the peer with the secret reads its
+    cycle, one with another secret refuses it, and a side's own frame heard back is its echo,
+    not a cycle."""
     secret = bytes(range(32))
     plant, controller = floors._Frames(secret), floors._Frames(secret)
     frame = plant.make(floors.PLANT_BASE_ID, 41)
-    assert frame.is_fd and len(frame.data) == 24
+    assert frame.is_fd and len(frame.data) == 64
     assert controller.cycle_of(frame, own_id=floors.COMMAND_ID) == 41
     assert floors._Frames(bytes(32)).cycle_of(frame, own_id=floors.COMMAND_ID) is None
     command = controller.make(floors.COMMAND_ID, 41)
+    assert command.is_fd and len(command.data) == 24
     assert controller.cycle_of(command, own_id=floors.COMMAND_ID) is None
     assert plant.cycle_of(command, own_id=-1) == 41
     plain = floors._Frames(None).make(floors.PLANT_BASE_ID, 7)
