@@ -4,6 +4,7 @@ offline and over the bus in lock-step, its plans recorded on /plans and injected
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
 import math
 from pathlib import Path
@@ -400,3 +401,92 @@ def test_a_reading_older_than_the_last_taken_or_than_remembered_is_history() -> 
         plain.coast(1.0, coasted)
         assert late.step(readings[100], age_cycles=age) == plain.step(None)
         assert late.state == plain.state
+
+
+def _coasting_replanner(estimate_gamma: bool, measured: int, coasted: int) -> tuple[Any, Any]:
+    """A re-planning controller on a real start's true (θ, x) for ``measured`` cycles, then
+    ``coasted`` cycles without a sample; with the true states."""
+    from ballbeam.core.replanning import ReplanningController, Settings
+
+    config = load_config(PAPER, ("run.duration_s=0.4",))
+    states = run_offline(config).trace.true_states
+    controller = ReplanningController(
+        Settings(estimate_gamma=estimate_gamma), np.array(states[0], dtype=float)
+    )
+    for state in states[:measured]:
+        controller.step(float(state[0]), float(state[3]))
+    for _ in range(coasted):
+        controller.step(None, None)
+    return controller, states
+
+
+@pytest.mark.parametrize("age", [1, 4, 17])
+def test_the_re_planning_filter_takes_a_late_sample_as_if_it_had_come_in_time(age: int) -> None:
+    """The Kalman filter on (θ, θ̇, ẋ, x, δγ): a sample of ``age`` cycles ago, whose cycle and
+    the ones since went on without a sample (the filter predicting only), leaves the state
+    and covariance the filter would have had taking it in its own cycle and predicting on
+    through the same drives; the identification's windows get it in place of the
+    prediction."""
+    from ballbeam.core.replanning import filter_step
+
+    first = 150  # in the first swing: the servo turns fast
+    controller, states = _coasting_replanner(True, first, age)
+    steps = list(controller._recent)[-age:]
+    assert all(step.measured is None for step in steps)
+    theta, position = float(states[first][0]), float(states[first][3])
+    rows = steps[0].rows
+    y = (rows.angle_gain * theta, rows.position_gain * position)
+    state, covariance = steps[0].state, steps[0].covariance
+    for index, step in enumerate(steps):  # in order: the sample at its own cycle
+        state, covariance, _ = filter_step(
+            step.rows, state, covariance, step.drive_v, y if index == 0 else None,
+            step.ball_noise_var,
+        )
+    coasted = controller.estimate.copy()
+    assert controller.take_late(theta, position, age)
+    assert np.allclose(controller.estimate, state[:4], rtol=0, atol=1e-12)
+    assert controller._gamma_error == pytest.approx(state[4], abs=1e-12)
+    assert np.allclose(controller._covariance, covariance, rtol=0, atol=1e-15)
+    assert not np.allclose(controller.estimate, coasted, rtol=0, atol=1e-6)
+    sample = first - controller._samples_from
+    assert (controller._theta[sample], controller._position[sample]) == (theta, position)
+
+
+def test_the_fixed_gain_observer_takes_a_late_sample_and_coasts_on_its_model() -> None:
+    """Without the γ filter: a period without a sample is the model's prediction
+    (Ad x̂ + bd u), and a late sample is the observer's correction at its cycle, predicted on
+    through the same drives (numpy here, the law's plain floats there)."""
+    age, first = 6, 150
+    controller, states = _coasting_replanner(False, first, age)
+    steps = list(controller._recent)[-age:]
+    ad = np.array(steps[0].rows.filter.Ad)
+    bd = np.array(steps[0].rows.filter.bd)
+    gain = np.array(steps[0].rows.L)
+    for before, after in itertools.pairwise(steps):
+        assert np.allclose(ad @ np.array(before.state) + bd * before.drive_v, after.state,
+                           rtol=0, atol=1e-12)
+    theta, position = float(states[first][0]), float(states[first][3])
+    filter_rows = steps[0].rows.filter
+    y = np.array([filter_rows.angle_gain * theta, filter_rows.position_gain * position])
+    c = np.zeros((2, 4))
+    c[0, 0], c[1, 3] = filter_rows.angle_gain, filter_rows.position_gain
+    estimate = np.array(steps[0].state)
+    for index, step in enumerate(steps):
+        estimate = ad @ estimate + bd * step.drive_v
+        if index == 0:
+            estimate = estimate + gain @ (y - c @ estimate)
+    assert controller.take_late(theta, position, age)
+    assert np.allclose(controller.estimate, estimate, rtol=0, atol=1e-12)
+
+
+def test_a_late_sample_older_than_one_taken_since_or_than_remembered_is_history() -> None:
+    """A sample of a cycle that had its own (or of one before a cycle that had one), or of
+    one longer ago than the filter remembers, changes nothing."""
+    controller, states = _coasting_replanner(True, 150, 3)
+    before = (controller.estimate.copy(), controller._covariance, list(controller._theta))
+    theta, position = float(states[140][0]), float(states[140][3])
+    assert not controller.take_late(theta, position, 10)  # cycle 140 had its sample
+    assert not controller.take_late(theta, position, len(controller._recent) + 1)
+    assert not controller.take_late(theta, position, 0)
+    after = (controller.estimate, controller._covariance, controller._theta)
+    assert np.array_equal(before[0], after[0]) and before[1:] == after[1:]

@@ -743,14 +743,15 @@ def filter_step(
     state: Vec,
     covariance: Mat,
     drive_v: float,
-    measured: tuple[float, float],
+    measured: tuple[float, float] | None,
     ball_noise_var: float,
-) -> tuple[Vec, Mat, tuple[float, float]]:
+) -> tuple[Vec, Mat, tuple[float, float] | None]:
     """One Kalman step (predict with the drive held over the period, then correct with the
     measurement ``measured`` = (angle_gain·θ, position_gain·x)) on (θ, θ̇, ẋ, x, δγ), where
     ẍ = (γ̂ + δγ)·θ and δγ is constant; ``ball_noise_var`` scales the ball's process noise.
     Returns the state (5,), its covariance (5, 5) and the position's innovation with its
-    predicted standard deviation [m]."""
+    predicted standard deviation [m]; with no measurement (a period without its sample) the
+    prediction, its covariance and no innovation."""
     h = rows.period_s
     theta, rate = state[0], state[1]
     a = rows.Ad
@@ -779,6 +780,8 @@ def filter_step(
     P = tuple(
         tuple(upper[i][j - i] if j >= i else upper[j][i - j] for j in range(5)) for i in range(5)
     )
+    if measured is None:
+        return prior, P, None
     ga, gp = rows.angle_gain, rows.position_gain
     hp0 = tuple(ga * v for v in P[0])  # H P: H's rows pick θ and x
     hp1 = tuple(gp * v for v in P[3])
@@ -810,22 +813,37 @@ def filter_step(
 
 
 class _FilterInput(NamedTuple):
-    """One filter step's inputs: run again from another state after a jump (_admit_jump).
-    A named tuple: one is made every cycle (a frozen dataclass sets each field through
-    ``object.__setattr__``)."""
+    """One filter step's inputs: run again from another state after a jump (_admit_jump), or
+    with the sample that came late for it (take_late). A named tuple: one is made every cycle
+    (a frozen dataclass sets each field through ``object.__setattr__``)."""
 
     state: Vec
     covariance: Mat
     rows: FilterRows
     drive_v: float
-    measured: tuple[float, float]
+    measured: tuple[float, float] | None  # None: the period's sample had not come
     ball_noise_var: float
 
-    def run(self) -> tuple[Vec, Mat, tuple[float, float]]:
+    def run(self) -> tuple[Vec, Mat, tuple[float, float] | None]:
         return filter_step(
             self.rows, self.state, self.covariance, self.drive_v, self.measured,
             self.ball_noise_var,
         )
+
+
+class _ObserverInput(NamedTuple):
+    """The fixed-gain observer's step inputs (without estimate_gamma), kept as _FilterInput's
+    are: ``covariance`` is empty, ``rows`` the cycle's."""
+
+    state: Vec
+    covariance: Mat
+    rows: _CycleRows
+    drive_v: float
+    measured: tuple[float, float] | None
+    ball_noise_var: float = 0.0
+
+    def run(self) -> tuple[Vec, Mat, tuple[float, float] | None]:
+        return _observe(self.rows, self.state, self.drive_v, self.measured), (), None
 
 
 @dataclass(frozen=True)
@@ -1292,8 +1310,9 @@ class ReplanningController:
     near_plans: int = field(init=False, default=0)
     jumps: int = field(init=False, default=0)  # the ball's speed jumps admitted (_admit_jump)
     _jumps: JumpDetector = field(init=False, default_factory=lambda: JumpDetector())
-    # the filter's last steps, for a jump to run it again from before (_admit_jump)
-    _recent: deque[_FilterInput] = field(
+    # the filter's (or the fixed-gain observer's) last steps, for a jump or a late sample to
+    # run it again from before (_admit_jump, take_late)
+    _recent: deque[_FilterInput | _ObserverInput] = field(
         init=False, default_factory=lambda: deque(maxlen=_JUMP_LOOKBACK)
     )
     _last_drive_v: float = field(init=False, default=0.0)
@@ -1451,15 +1470,24 @@ class ReplanningController:
 
     # --- one cycle --------------------------------------------------------------------
 
-    def step(self, theta_rad: float, position_m: float) -> CycleRecord:
+    def step(self, theta_rad: float | None, position_m: float | None) -> CycleRecord:
+        """One cycle on the period's sample (θ, x), or on none (both None: its sample has
+        not come; the filter predicts only, and the identification's windows get the
+        prediction, which a late sample replaces: take_late)."""
         s = self.settings
         d = self.design
         rows = self._rows()
-        y = (rows.filter.angle_gain * theta_rad, rows.filter.position_gain * position_m)
+        y = None
+        if theta_rad is not None and position_m is not None:
+            y = (rows.filter.angle_gain * theta_rad, rows.filter.position_gain * position_m)
         if self.cycle and s.estimate_gamma:
             self._filter(y)
         elif self.cycle:
-            self.estimate = np.array(_observe(rows, self.estimate.tolist(), self._last_drive_v, y))
+            step = _ObserverInput(self.estimate.tolist(), (), rows, self._last_drive_v, y)
+            self._recent.append(step)
+            self.estimate = np.array(step.run()[0])
+        elif theta_rad is None or position_m is None:
+            raise ValueError("the first control cycle needs a sample")
         else:
             self.estimate = np.array(
                 [theta_rad, self.initial_state[1], self.initial_state[2], position_m]
@@ -1467,8 +1495,10 @@ class ReplanningController:
             self._covariance = _mat(
                 scipy.linalg.block_diag(d.estimate_covariance, d.identified.gamma_std**2)
             )
-        self._theta.append(theta_rad)
-        self._position.append(position_m)
+        self._theta.append(float(self.estimate[THETA]) if theta_rad is None else theta_rad)
+        self._position.append(
+            float(self.estimate[BALL_POSITION]) if position_m is None else position_m
+        )
         if self.cycle and self.cycle % s.identify_every == 0:
             self._request_design(self._design_request())
             d = self.design
@@ -1480,7 +1510,7 @@ class ReplanningController:
         self.cycle += 1
         return record
 
-    def _filter(self, y: tuple[float, float]) -> None:
+    def _filter(self, y: tuple[float, float] | None) -> None:
         """One Kalman step on (θ, θ̇, ẋ, x, δγ): ẍ = (γ̂ + δγ)·θ, δγ constant."""
         s = self.settings
         ball_noise_var = 0.0
@@ -1501,9 +1531,44 @@ class ReplanningController:
         state, self._covariance, innovation = step.run()
         self.estimate = np.array(state[:4])
         self._gamma_error = state[4]
+        if innovation is None:
+            return
         jump = self._jumps.step(*innovation, s.period_s)
         if jump is not None:
             self._admit_jump(*jump)
+
+    def take_late(self, theta_rad: float, position_m: float, age_cycles: int) -> bool:
+        """The sample of ``age_cycles`` cycles ago, which came after its cycle had gone on
+        without it: the filter runs again from that cycle with it, through the cycles since
+        with the drives they sent (a Kalman filter's answer to a measurement out of
+        sequence; the commands sent meanwhile stay what they were), and the identification's
+        windows get it in place of the prediction. Whether it was taken: a sample older than
+        the filter remembers, or than one taken since, is history (nothing changes)."""
+        recent = self._recent
+        index = len(recent) - age_cycles
+        if age_cycles <= 0 or index < 0 or any(
+            recent[i].measured is not None for i in range(index, len(recent))
+        ):
+            return False
+        rows = self._rows().filter
+        y = (rows.angle_gain * theta_rad, rows.position_gain * position_m)
+        state, covariance = recent[index].state, recent[index].covariance
+        for i in range(index, len(recent)):
+            step = recent[i]._replace(
+                state=state, covariance=covariance, measured=y if i == index else None
+            )
+            recent[i] = step
+            state, covariance, _ = step.run()
+        if self.settings.estimate_gamma:
+            self.estimate = np.array(state[:4])
+            self._gamma_error = state[4]
+            self._covariance = covariance
+        else:
+            self.estimate = np.array(state)
+        sample = self.cycle - age_cycles - self._samples_from
+        if 0 <= sample < len(self._theta):
+            self._theta[sample], self._position[sample] = theta_rad, position_m
+        return True
 
     def _design_request(self) -> DesignRequest:
         """A re-design from the samples since the identification's windows (γ the filter's,
@@ -1689,10 +1754,15 @@ class ReplanningController:
         return max(-limit, min(limit, command))
 
 
-def _observe(rows: _CycleRows, estimate: Vec, drive_v: float, y: tuple[float, float]) -> Vec:
-    """The fixed-gain observer's step (without estimate_gamma): predict, then correct."""
+def _observe(
+    rows: _CycleRows, estimate: Vec, drive_v: float, y: tuple[float, float] | None
+) -> Vec:
+    """The fixed-gain observer's step (without estimate_gamma): predict, then correct (with
+    no measurement, the prediction)."""
     f = rows.filter
     prior = tuple(_dot4(f.Ad[i], estimate) + f.bd[i] * drive_v for i in range(4))
+    if y is None:
+        return prior
     r0 = y[0] - f.angle_gain * prior[THETA]
     r1 = y[1] - f.position_gain * prior[BALL_POSITION]
     return tuple(prior[i] + (rows.L[i][0] * r0 + rows.L[i][1] * r1) for i in range(4))

@@ -140,7 +140,7 @@ class ReplanningLaw:
 
     @property
     def takes_late_readings(self) -> bool:
-        return False
+        return True
 
     def request_cycle(self, request: Request) -> int:
         """The law's cycle at which ``request`` was made."""
@@ -186,9 +186,15 @@ class ReplanningLaw:
         self, reading: SensorReading | None, lateness_ns: int = 0, age_cycles: int = 0
     ) -> CycleOutput:
         controller = self.controller
-        if age_cycles > 0:
-            # Its filter and identification take each sample at its own cycle only: a late
-            # one is history, and the cycle coasts on the estimate.
+        if reading is not None and age_cycles > 0:
+            # A sample of a cycle that went on without it: the filter takes it at its own
+            # cycle and runs again to now (or, older than it remembers, it is history); this
+            # cycle has no sample of its own.
+            if self.started:
+                controller.take_late(
+                    reading.angle_counts * self.encoder_step_rad,
+                    reading.position_counts * self.adc_step_m, age_cycles,
+                )
             reading = None
         if reading is None and not self.started:
             raise ValueError("the first control cycle needs a sensor reading")  # as the tracker
@@ -201,15 +207,13 @@ class ReplanningLaw:
         else:
             controller.sine_time_s = self._cycle * self.period_s
         self._take_answer()
-        if reading is None:
-            # No sample: the law is told what its estimate expects (a measurement that
-            # corrects nothing; the identification learns nothing new from it).
-            theta_rad = float(controller.estimate[0])
-            position_m = float(controller.estimate[3])
+        if reading is None:  # no sample: the filter predicts only
+            record = controller.step(None, None)
         else:
-            theta_rad = reading.angle_counts * self.encoder_step_rad
-            position_m = reading.position_counts * self.adc_step_m
-        record = controller.step(theta_rad, position_m)
+            record = controller.step(
+                reading.angle_counts * self.encoder_step_rad,
+                reading.position_counts * self.adc_step_m,
+            )
         issued = [r for r in (controller.design_issued, controller.issued) if r is not None]
         controller.issued = controller.design_issued = None
         if self.recorded is None:  # (a replay answers from the log)
@@ -229,7 +233,7 @@ class ReplanningLaw:
     def coast(
         self, held_voltage_v: float, count: int, lookahead_v: tuple[float, ...] = ()
     ) -> None:
-        """Periods without a sample: each is stepped on the estimate's own expectation (the
+        """Periods without a sample: each is stepped with none (the filter predicts, the
         plan's clock runs on); before the first reading only the count advances. The law
         models its own commands through them, not the held one (its model of the drive is
         internal): a gap of a few periods costs a small correction afterwards. Answers taken
