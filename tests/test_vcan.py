@@ -34,6 +34,7 @@ from ballbeam.config import DEFAULT_BUS_GROUP, BusSection
 from ballbeam.errors import BusError
 from ballbeam.logs.reader import read_log
 from ballbeam.protocol.frames import SENSOR_ID, VOLTAGE_COMMAND_ID, FrameContract
+from ballbeam.protocol.secoc import AUTHENTICATED_LENGTH, EXTENDED_LENGTH, MAC_BYTES
 from ballbeam.runtime import bus as bus_module
 from ballbeam.runtime.bus import (
     CanInterface,
@@ -261,8 +262,8 @@ def vcan_runs(vcan_fd: str, vcan_classic: str, can_utils: None, log_dir: Path) -
     classic = _run(log_dir, "bus.interface='socketcan'", f"bus.channel='{vcan_classic}'",
                    wait=False)
     authentic = _sample_once_running(vcan_fd, fd=True, run=fd)
-    assert len(authentic) == 24
-    forged = authentic[:16] + bytes(8)
+    assert len(authentic) == EXTENDED_LENGTH  # a sensor frame carries its sample's truth
+    forged = authentic[:-MAC_BYTES] + bytes(MAC_BYTES)
     wrong_crc = bytes((authentic[0] ^ 0xFF,)) + authentic[1:8]
     for _ in range(FD_CANSENDS // 3):
         _cansend(vcan_fd, SENSOR_ID, forged, fd=True)
@@ -298,7 +299,8 @@ def test_auto_runs_authenticated_on_the_fd_vcan_and_says_so(
     assert run_log.metadata["run"]["bus_choice"] == fd_run["bus_choice"]
     received = run_log.topics["/can/rx"].values
     authenticated = received["dlc"] != 8  # 8: cansend's classic frames
-    assert set(np.unique(received["dlc"][authenticated])) == {24}  # SecOC, CAN FD lengths
+    # SecOC, CAN FD lengths: a sensor frame with its truth, the plant's status frames
+    assert set(np.unique(received["dlc"][authenticated])) == {EXTENDED_LENGTH, AUTHENTICATED_LENGTH}
     assert np.count_nonzero(~authenticated) == 3
     _check_slow_machine_figures(fd_run)
 
