@@ -836,8 +836,8 @@ class Config(_Section):
             raise ValueError(
                 'controller.kind = "replanning" runs in lock-step only (run.mode = "lockstep"): '
                 "its plans and identification are solved off the cycle, but in real time its "
-                "loop still falls behind the sensor stream under load and the servo can pass "
-                "its limit (docs/decisions.md)"
+                "cycle still takes most of the period, the loop falls tens of periods behind "
+                "the sensor stream under load and the ball rests late (docs/decisions.md)"
             )
 
     def _sizes_fit_a_run(self) -> None:
