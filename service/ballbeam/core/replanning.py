@@ -1528,9 +1528,8 @@ class ReplanningController:
             self._last_drive_v, y, ball_noise_var,
         )
         self._recent.append(step)
-        state, self._covariance, innovation = step.run()
-        self.estimate = np.array(state[:4])
-        self._gamma_error = state[4]
+        state, covariance, innovation = step.run()
+        self._take_filtered(state, covariance)
         if innovation is None:
             return
         jump = self._jumps.step(*innovation, s.period_s)
@@ -1551,20 +1550,11 @@ class ReplanningController:
         ):
             return False
         rows = self._rows().filter
-        y = (rows.angle_gain * theta_rad, rows.position_gain * position_m)
-        state, covariance = recent[index].state, recent[index].covariance
-        for i in range(index, len(recent)):
-            step = recent[i]._replace(
-                state=state, covariance=covariance, measured=y if i == index else None
-            )
-            recent[i] = step
-            state, covariance, _ = step.run()
-        if self.settings.estimate_gamma:
-            self.estimate = np.array(state[:4])
-            self._gamma_error = state[4]
-            self._covariance = covariance
-        else:
-            self.estimate = np.array(state)
+        first = recent[index]._replace(
+            measured=(rows.angle_gain * theta_rad, rows.position_gain * position_m)
+        )
+        recent[index] = first
+        self._run_again(index, first.state, first.covariance)
         sample = self.cycle - age_cycles - self._samples_from
         if 0 <= sample < len(self._theta):
             self._theta[sample], self._position[sample] = theta_rad, position_m
@@ -1595,17 +1585,31 @@ class ReplanningController:
         fast the ball goes now (at rest the model is trusted so much that a tap would take
         the filter a second to believe, and its γ error would take the blame meanwhile)."""
         self.jumps += 1
-        recent = list(self._recent)
-        start = max(0, len(recent) - samples - _JUMP_LOOKBACK_MARGIN)
-        first = recent[start]
+        start = max(0, len(self._recent) - samples - _JUMP_LOOKBACK_MARGIN)
+        first = self._recent[start]
         grown = [list(row) for row in first.covariance]
         grown[2][2] += speed_m_s * speed_m_s
-        state, covariance = first.state, tuple(tuple(row) for row in grown)
-        for step in recent[start:]:
-            state, covariance, _ = step._replace(state=state, covariance=covariance).run()
-        self.estimate = np.array(state[:4])
-        self._gamma_error = state[4]
-        self._covariance = covariance
+        self._run_again(start, first.state, tuple(tuple(row) for row in grown))
+
+    def _run_again(self, start: int, state: Vec, covariance: Mat) -> None:
+        """The remembered filter steps from ``start`` on, run again from ``state`` and
+        ``covariance``; each step's inputs are rewritten (a later re-run starts from these),
+        and where they end is the estimate."""
+        recent = self._recent
+        for index in range(start, len(recent)):
+            step = recent[index]._replace(state=state, covariance=covariance)
+            recent[index] = step
+            state, covariance, _ = step.run()
+        self._take_filtered(state, covariance)
+
+    def _take_filtered(self, state: Vec, covariance: Mat) -> None:
+        """The filter's result as the estimate (with the γ filter: its δγ and covariance)."""
+        if self.settings.estimate_gamma:
+            self.estimate = np.array(state[:4])
+            self._gamma_error = state[4]
+            self._covariance = covariance
+        else:
+            self.estimate = np.array(state)
 
     def _error(self) -> Vec:
         e0, e1, e2, e3 = self.estimate.tolist()

@@ -128,7 +128,7 @@ def leave_real_time() -> None:
     be starved on it. At the loop's own SCHED_FIFO priority on its CPU, a thread keeps that
     CPU until it blocks: the loop's timer wakes it in vain, and it cannot even ask for the
     interpreter lock. At normal priority but still pinned there, it gets only what the loop
-    and every other job on that CPU leave (a killed run's writer lost 128 ms of log so).
+    and every other job on that CPU leave (a killed run's log then loses more than a flush).
     Where the system refuses, nothing changes; the kernel keeps the mask within the CPUs the
     process's cgroup allows."""
     with contextlib.suppress(OSError, AttributeError):
