@@ -18,6 +18,7 @@ from ballbeam.config import load_config
 from ballbeam.core.control import PlanTaken
 from ballbeam.core.law import TrackerLaw
 from ballbeam.core.planning.arcs import plan_arcs
+from ballbeam.core.plant import SensorReading
 from ballbeam.core.replanning import _sine_state
 from ballbeam.core.task import SineWave, flat_feedforward
 from ballbeam.evaluation.replay import verify
@@ -312,10 +313,9 @@ def test_the_seam_runs_the_tracker_as_before() -> None:
 
 
 def test_plans_adopted_while_coasting_come_with_the_next_output_at_their_own_cycles() -> None:
-    """A gap of 25 periods (a fault's 0 V): the re-planning law steps on its own expectation,
-    its plan's clock running on; the plans it adopts meanwhile are handed out with the next
-    step, each at the cycle it took effect (so the daemon records them where replay finds
-    them)."""
+    """A gap of 25 periods (a fault's 0 V): the re-planning law predicts through it, its
+    plan's clock running on; the plans it adopts are handed out with the next step, each at
+    the cycle it took effect (so the daemon records them where replay finds them)."""
     from ballbeam.core.plant import SensorReading
 
     config = load_config(PAPER, (*REPLANNING, "run.duration_s=0.2"))
@@ -477,6 +477,72 @@ def test_the_fixed_gain_observer_takes_a_late_sample_and_coasts_on_its_model() -
             estimate = estimate + gain @ (y - c @ estimate)
     assert controller.take_late(theta, position, age)
     assert np.allclose(controller.estimate, estimate, rtol=0, atol=1e-12)
+
+
+def test_coasted_periods_are_predicted_on_what_the_plant_drove() -> None:
+    """Periods the law made no command for: the plant drove the look-ahead's entries, then
+    held its last (without one, the held command); the fixed-gain observer's prediction is
+    Ad x̂ + bd u on each, the identified dead zone taken out (numpy here), and nothing else is
+    decided in them: no plan is asked for."""
+    from ballbeam.core.replanning import _dead_zone
+    from ballbeam.core.replanning_law import ReplanningLaw
+
+    controller, _ = _coasting_replanner(False, 150, 0)
+    rows = controller._rows()
+    ad, bd = np.array(rows.filter.Ad), np.array(rows.filter.bd)
+    deadzone_v = controller.design.identified.deadzone_v
+    estimate, drive_v = controller.estimate.copy(), controller._last_drive_v
+    applied = (4.5, -0.1, 2.0, 0.0)
+    for applied_v in applied:
+        controller.coast(applied_v)
+    for applied_v in applied:
+        estimate = ad @ estimate + bd * drive_v
+        drive_v = _dead_zone(applied_v, deadzone_v)
+    assert np.allclose(controller.estimate, estimate, rtol=0, atol=1e-12)
+    assert controller._command[-4:] == list(applied) and controller.cycle == 154
+    assert controller.issued is None
+
+    config = load_config(PAPER, (*REPLANNING, "run.duration_s=0.2"))
+    trace = run_offline(config).trace
+    law = control_law(config)
+    assert isinstance(law, ReplanningLaw)
+    law.step(SensorReading(int(trace.angle_counts[0]), int(trace.position_counts[0])))
+    driven: list[float] = []
+    law.controller.coast = driven.append  # type: ignore[method-assign,assignment]
+    law.coast(1.0, 5, (2.0, 3.0))
+    law.coast(1.5, 2)
+    assert driven == [2.0, 3.0, 3.0, 3.0, 3.0, 1.5, 1.5] and law.cycle == 8
+
+
+@pytest.mark.parametrize("estimate_gamma", [True, False])
+def test_the_re_planning_look_ahead_is_what_the_law_commands_when_no_sample_comes(
+    estimate_gamma: bool,
+) -> None:
+    """Mid-plan (the first swing) and at rest: the look-ahead's commands are those the
+    controller makes stepping on no sample for as many periods (its plan kept: the requests
+    it makes meanwhile are not answered)."""
+    import copy
+
+    from ballbeam.core.replanning import ReplanningController, Settings, solve_plan_request
+
+    config = load_config(PAPER, ("run.duration_s=3",))
+    states = run_offline(config).trace.true_states
+    controller = ReplanningController(
+        Settings(estimate_gamma=estimate_gamma), np.array(states[0], dtype=float)
+    )
+    controller.deferred = True
+    controller.request_plan(controller.initial_state)
+    assert controller.outstanding is not None
+    controller.adopt(solve_plan_request(controller.outstanding))
+    for cycle, state in enumerate(states[:2900]):
+        controller.step(float(state[0]), float(state[3]))
+        controller.issued = controller.design_issued = None  # never answered: the plan stays
+        if cycle in (150, 2899):
+            lookahead = controller.lookahead(12)
+            alone = copy.deepcopy(controller)
+            stepped = tuple(alone.step(None, None).command_v for _ in range(12))
+            assert len(lookahead) == 12 and lookahead == stepped
+    assert controller.terminal  # the second check was under the terminal regulator
 
 
 def test_a_late_sample_older_than_one_taken_since_or_than_remembered_is_history() -> None:

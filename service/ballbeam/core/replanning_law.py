@@ -31,7 +31,8 @@ from collections.abc import Callable, Mapping
 
 import numpy as np
 
-from ballbeam.core.control import CycleOutput, PlanTaken
+from ballbeam.core.control import LOOKAHEAD_FLOOR, CycleOutput, PlanTaken
+from ballbeam.core.guard import NO_LATENESS, held_lateness
 from ballbeam.core.model import as_row4
 from ballbeam.core.plant import SensorReading
 from ballbeam.core.replanning import (
@@ -62,7 +63,10 @@ class ReplanningLaw:
     the target at each cycle's time; ``plan_delay_cycles``: the fewest cycles from a request
     to the step that takes its answer (≥ 1); ``planner``: solves requests in this process
     (None: the caller takes them, :meth:`take_request`, and offers the answers);
-    ``recorded`` (a replay): the answers the run took, by the cycle it took each."""
+    ``recorded`` (a replay): the answers the run took, by the cycle it took each;
+    ``lookahead_periods``: the most periods a command's look-ahead covers (0: none; real time
+    on the authenticated bus), as many as the loop has lately been late (its lateness held
+    for ``lateness_hold_cycles``) plus a few."""
 
     def __init__(
         self,
@@ -75,6 +79,8 @@ class ReplanningLaw:
         plan_delay_cycles: int,
         planner: Planner | None = None,
         recorded: Mapping[tuple[int, bool], PlanTaken] | None = None,
+        lookahead_periods: int = 0,
+        lateness_hold_cycles: int = 0,
     ) -> None:
         if plan_delay_cycles < 1:
             raise ValueError("a plan takes effect one cycle after its request at the soonest")
@@ -85,6 +91,9 @@ class ReplanningLaw:
         self.encoder_step_rad = encoder_step_rad
         self.adc_step_m = adc_step_m
         self.plan_delay_cycles = plan_delay_cycles
+        self.lookahead_periods = lookahead_periods
+        self.lateness_hold_cycles = lateness_hold_cycles
+        self._lateness = NO_LATENESS
         self.planner = planner
         self.recorded = recorded
         sine = (
@@ -186,6 +195,10 @@ class ReplanningLaw:
         self, reading: SensorReading | None, lateness_ns: int = 0, age_cycles: int = 0
     ) -> CycleOutput:
         controller = self.controller
+        if self.lookahead_periods:
+            self._lateness = held_lateness(
+                self._lateness, lateness_ns, self.lateness_hold_cycles
+            )
         if reading is not None and age_cycles > 0:
             # A sample of a cycle that went on without it: the filter takes it at its own
             # cycle and runs again to now (or, older than it remembers, it is history); this
@@ -214,14 +227,7 @@ class ReplanningLaw:
                 reading.angle_counts * self.encoder_step_rad,
                 reading.position_counts * self.adc_step_m,
             )
-        issued = [r for r in (controller.design_issued, controller.issued) if r is not None]
-        controller.issued = controller.design_issued = None
-        if self.recorded is None:  # (a replay answers from the log)
-            for request in issued:
-                if self.planner is not None:
-                    self.offer(self.planner(request))
-                else:
-                    self._issued.append(request)
+        self._issue(controller)
         self._cycle += 1
         estimate = record.estimate if record.estimate is not None else controller.estimate
         taken, self._taken = tuple(self._taken), []
@@ -233,19 +239,42 @@ class ReplanningLaw:
     def coast(
         self, held_voltage_v: float, count: int, lookahead_v: tuple[float, ...] = ()
     ) -> None:
-        """Periods without a sample: each is stepped with none (the filter predicts, the
-        plan's clock runs on); before the first reading only the count advances. The law
-        models its own commands through them, not the held one (its model of the drive is
-        internal): a gap of a few periods costs a small correction afterwards. Answers taken
-        meanwhile come with the next step's output."""
+        """Periods the law made no command for: the filter predicts each on what the plant
+        drove (the look-ahead's entries, then its last; without one the held command) and
+        the plan's clock runs on; before the first reading only the count advances. Nothing
+        is decided in them: answers, targets and plans wait for the next step."""
         if not self.started:
             self._cycle += count
             return
-        for _ in range(count):
-            self._taken = list(self.step(None).adopted_plans)  # kept for the next output
+        for index in range(count):
+            if lookahead_v:
+                applied_v = lookahead_v[min(index, len(lookahead_v) - 1)]
+            else:
+                applied_v = held_voltage_v
+            self.controller.coast(applied_v)
+            self._cycle += 1
+        self._issue(self.controller)
+
+    def _issue(self, controller: ReplanningController) -> None:
+        """The requests the controller made: to the planner, or for the caller to take."""
+        issued = [r for r in (controller.design_issued, controller.issued) if r is not None]
+        controller.issued = controller.design_issued = None
+        if self.recorded is None:  # (a replay answers from the log)
+            for request in issued:
+                if self.planner is not None:
+                    self.offer(self.planner(request))
+                else:
+                    self._issued.append(request)
 
     def lookahead(self) -> tuple[float, ...]:
-        return ()
+        """The next periods' commands (:meth:`ReplanningController.lookahead`): a few more
+        than the loop has lately been late, at most ``lookahead_periods``."""
+        if not self.lookahead_periods or not self.started:
+            return ()
+        period_ns = round(self.period_s * 1e9)
+        late_periods = -(-self._lateness.worst_ns // period_ns)  # rounded up
+        count = min(self.lookahead_periods, LOOKAHEAD_FLOOR + late_periods)
+        return self.controller.lookahead(count)
 
     def _take_answer(self) -> None:
         """Before the step: the outstanding requests' answers that are in and due (the
