@@ -514,37 +514,6 @@ def test_coasted_periods_are_predicted_on_what_the_plant_drove() -> None:
     assert driven == [2.0, 3.0, 3.0, 3.0, 3.0, 1.5, 1.5] and law.cycle == 8
 
 
-@pytest.mark.parametrize("estimate_gamma", [True, False])
-def test_the_re_planning_look_ahead_is_what_the_law_commands_when_no_sample_comes(
-    estimate_gamma: bool,
-) -> None:
-    """Mid-plan (the first swing) and at rest: the look-ahead's commands are those the
-    controller makes stepping on no sample for as many periods (its plan kept: the requests
-    it makes meanwhile are not answered)."""
-    import copy
-
-    from ballbeam.core.replanning import ReplanningController, Settings, solve_plan_request
-
-    config = load_config(PAPER, ("run.duration_s=3",))
-    states = run_offline(config).trace.true_states
-    controller = ReplanningController(
-        Settings(estimate_gamma=estimate_gamma), np.array(states[0], dtype=float)
-    )
-    controller.deferred = True
-    controller.request_plan(controller.initial_state)
-    assert controller.outstanding is not None
-    controller.adopt(solve_plan_request(controller.outstanding))
-    for cycle, state in enumerate(states[:2900]):
-        controller.step(float(state[0]), float(state[3]))
-        controller.issued = controller.design_issued = None  # never answered: the plan stays
-        if cycle in (150, 2899):
-            lookahead = controller.lookahead(12)
-            alone = copy.deepcopy(controller)
-            stepped = tuple(alone.step(None, None).command_v for _ in range(12))
-            assert len(lookahead) == 12 and lookahead == stepped
-    assert controller.terminal  # the second check was under the terminal regulator
-
-
 def test_a_late_sample_older_than_one_taken_since_or_than_remembered_is_history() -> None:
     """A sample of a cycle that had its own (or of one before a cycle that had one), or of
     one longer ago than the filter remembers, changes nothing."""

@@ -282,7 +282,14 @@ def controller_design(config: Config, plan: Plan | None = None) -> ControllerDes
         initial_state=as_row4(initial),
         angle_per_count=constants.angle_sensor_gain * encoder_step_rad,
         position_per_count=constants.position_sensor_gain * adc_step_m,
-        lookahead_periods=lookahead_periods(config),
+        # Only a real-time run on the authenticated bus sends it (its 64-byte CAN FD frames),
+        # and only with a sample a period: the emulator steps it at its sample instants, and a
+        # command does not say which of several samples in a period its period began with.
+        lookahead_periods=(
+            config.controller.lookahead_periods
+            if config.run.mode == "realtime" and config.bus.authenticated
+            and sensor_periods_per_cycle(config) == 1 else 0
+        ),
         target_m=target_m,
     )
 
@@ -544,24 +551,8 @@ def control_law(
             plan_delay_cycles=config.controller.plan_delay_cycles,
             planner=solve_request if plans_in_process and recorded_plans is None else None,
             recorded=recorded_plans,
-            lookahead_periods=lookahead_periods(config),
-            lateness_hold_cycles=round(
-                config.controller.guard_lateness_hold_s / config.controller.period_s
-            ),
         )
     return TrackerLaw(design if design is not None else controller_design(config))
-
-
-def lookahead_periods(config: Config) -> int:
-    """How many periods a command's look-ahead may cover: only a real-time run on the
-    authenticated bus sends one (its 64-byte CAN FD frames), and only with a sample a
-    period: the emulator steps it at its sample instants, and a command does not say which
-    of several samples in a period its period began with."""
-    if config.run.mode == "realtime" and config.bus.authenticated and (
-        sensor_periods_per_cycle(config) == 1
-    ):
-        return config.controller.lookahead_periods
-    return 0
 
 
 def counts_per_measurement(config: Config) -> tuple[float, float]:

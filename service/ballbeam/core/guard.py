@@ -140,13 +140,8 @@ def watch_lateness(
         if lateness_ns >= watch.worst_ns or watch.age_cycles >= guard.lateness_hold_cycles:
             return LatenessWatch(lateness_ns, 0)
         return LatenessWatch(watch.worst_ns, watch.age_cycles + 1)
-    return held_lateness(watch, lateness_ns, guard.lateness_hold_cycles)
-
-
-def held_lateness(watch: LatenessWatch, lateness_ns: int, hold_cycles: int) -> LatenessWatch:
-    """``watch`` (two buckets of ``hold_cycles`` cycles) after a cycle ``lateness_ns`` late."""
     bucket_ns, previous_ns, age = watch.bucket_ns, watch.previous_ns, watch.age_cycles
-    if age >= hold_cycles:
+    if age >= guard.lateness_hold_cycles:
         bucket_ns, previous_ns, age = 0, bucket_ns, 0
     bucket_ns = max(bucket_ns, lateness_ns)
     return LatenessWatch(max(bucket_ns, previous_ns), age + 1, bucket_ns, previous_ns)

@@ -738,37 +738,6 @@ class FilterRows:
     position_gain: float
 
 
-def _transition(rows: FilterRows, state: Vec) -> Mat:
-    """The filter's state transition (5, 5) over one period from ``state``."""
-    h = rows.period_s
-    theta, rate = state[0], state[1]
-    a = rows.Ad
-    # δγ·∫θ and δγ·∫∫θ over the step, θ moving at its rate (a fast stroke moves θ by a
-    # percent of itself in one step)
-    return (
-        (*a[0], 0.0),
-        (*a[1], 0.0),
-        (*a[2], h * (theta + 0.5 * rate * h)),
-        (*a[3], 0.5 * h * h * (theta + rate * h / 3.0)),
-        (0.0, 0.0, 0.0, 0.0, 1.0),
-    )
-
-
-def _predicted(rows: FilterRows, state: Vec, drive_v: float) -> Vec:
-    """The state one period on with ``drive_v`` held, the filter's prediction: (θ, θ̇, ẋ, x,
-    δγ) as :func:`filter_step` predicts it, or (θ, θ̇, ẋ, x) on the design's model (the
-    fixed-gain observer's)."""
-    if len(state) == 4:
-        a, bd = rows.Ad, rows.bd
-        return tuple(_dot4(a[i], state) + bd[i] * drive_v for i in range(4))
-    return _moved_on(_transition(rows, state), rows.bd, state, drive_v)
-
-
-def _moved_on(F: Mat, bd: Vec, state: Vec, drive_v: float) -> Vec:
-    """F·state + bd·drive on (θ, θ̇, ẋ, x, δγ) (δγ constant)."""
-    return (*(_dot5(F[i], state) + bd[i] * drive_v for i in range(4)), state[4])
-
-
 def filter_step(
     rows: FilterRows,
     state: Vec,
@@ -783,8 +752,20 @@ def filter_step(
     Returns the state (5,), its covariance (5, 5) and the position's innovation with its
     predicted standard deviation [m]; with no measurement (a period without its sample) the
     prediction, its covariance and no innovation."""
-    F = _transition(rows, state)
-    prior = _moved_on(F, rows.bd, state, drive_v)
+    h = rows.period_s
+    theta, rate = state[0], state[1]
+    a = rows.Ad
+    # δγ·∫θ and δγ·∫∫θ over the step, θ moving at its rate (a fast stroke moves θ by a
+    # percent of itself in one step)
+    F = (
+        (*a[0], 0.0),
+        (*a[1], 0.0),
+        (*a[2], h * (theta + 0.5 * rate * h)),
+        (*a[3], 0.5 * h * h * (theta + rate * h / 3.0)),
+        (0.0, 0.0, 0.0, 0.0, 1.0),
+    )
+    bd = rows.bd
+    prior = (*(_dot5(F[i], state) + bd[i] * drive_v for i in range(4)), state[4])
     # F P Fᵀ + Q: P is symmetric (kept so), so P's rows are its columns; F's last row
     # picks δγ, so F P's is P's; the product's upper triangle is mirrored
     FP = (*(tuple(_dot5(row, column) for column in covariance) for row in F[:4]), covariance[4])
@@ -1322,7 +1303,6 @@ class ReplanningController:
     plan_start_cycle: int = field(init=False, default=0)
     terminal: bool = field(init=False, default=False)
     cycle: int = field(init=False, default=0)
-    _step_cycle: int = field(init=False, default=0)  # the cycle of the last step (its drive's)
     replans: int = field(init=False, default=0)
     missed: int = field(init=False, default=0)
     reshaped: int = field(init=False, default=0)
@@ -1472,15 +1452,13 @@ class ReplanningController:
             sine=self.sine, sine_time_s=self.sine_time_s,
         )
 
-    def _reference(self, later: int = 0) -> tuple[tuple[float, float, float, float], float]:
+    def _reference(self) -> tuple[tuple[float, float, float, float], float]:
         """What the terminal regulator holds the state on, and its drive: rest at the target,
-        or the sine's flat state (the identified model's) ``later`` periods after the step's
-        own (the sine's time is the step's)."""
+        or the sine's flat state now (the identified model's)."""
         if self.sine is None:
             return (0.0, 0.0, 0.0, self.target_m), 0.0
         p = self.design.identified.params
-        time_s = self.sine_time_s + later * self.settings.period_s
-        return _sine_state(self.sine, time_s, p.gamma, p.alpha, p.pole_per_s)
+        return _sine_state(self.sine, self.sine_time_s, p.gamma, p.alpha, p.pole_per_s)
 
     def _clipped(self, state: np.ndarray | None) -> np.ndarray:
         """The state to plan from (default: the estimate), its angle inside the plan's."""
@@ -1496,7 +1474,6 @@ class ReplanningController:
         """One cycle on the period's sample (θ, x), or on none (both None: its sample has
         not come; the filter predicts only, and the identification's windows get the
         prediction, which a late sample replaces: take_late)."""
-        self._step_cycle = self.cycle
         if not self.cycle:
             if theta_rad is None or position_m is None:
                 raise ValueError("the first control cycle needs a sample")
@@ -1658,13 +1635,11 @@ class ReplanningController:
         else:
             self.estimate = np.array(state)
 
-    def _error(self, estimate: Vec | None = None, later: int = 0) -> Vec:
-        """The state's error from the terminal regulator's reference (default: the
-        estimate's, at the step)."""
-        e0, e1, e2, e3 = self.estimate.tolist() if estimate is None else estimate
+    def _error(self) -> Vec:
+        e0, e1, e2, e3 = self.estimate.tolist()
         if self.sine is None:
             return (e0, e1, e2, e3 - self.target_m)
-        r0, r1, r2, r3 = self._reference(later)[0]
+        r0, r1, r2, r3 = self._reference()[0]
         return (e0 - r0, e1 - r1, e2 - r2, e3 - r3)
 
     def _in_terminal_set(self, factor: float = 1.0) -> bool:
@@ -1696,6 +1671,7 @@ class ReplanningController:
         return (self.cycle - self.plan_start_cycle) * self.settings.period_s
 
     def _drive(self) -> CycleRecord:
+        d = self.design
         if self.sine is not None and not self.terminal and self._in_terminal_set():
             # on a sine the regulator follows wherever its drive stays unsaturated: a plan
             # (to rest where the sine will be) is for outside that set only
@@ -1723,31 +1699,21 @@ class ReplanningController:
                 else:  # outside the terminal set: a (small) minimum-time move to it
                     self._plan_from_estimate(near=True)
                     plan = self.plan
-        drive, reference, feedforward = self._drive_at(self.estimate.tolist())
-        return CycleRecord(
-            0.0, np.array(reference), drive, self.terminal, feedforward, self.estimate.copy()
-        )
-
-    def _drive_at(self, estimate: Vec, later: int = 0) -> tuple[float, Vec, float]:
-        """The drive the mode in force (the plan, the terminal regulator, or none) asks for
-        at ``estimate``, ``later`` periods after the step's own; with its reference and
-        feedforward."""
-        plan = self.plan
         if self.terminal or (plan is None and self.sine is not None):
             # (a sine, its plan being solved: follow it meanwhile rather than drive nothing)
-            drive = -_dot4(self._rows().K_terminal, self._error(estimate, later))
-            reference, feedforward = self._reference(later)
+            drive = -_dot4(self._rows().K_terminal, self._error())
+            held, feedforward = self._reference()
+            reference = np.array(held)
         elif plan is None:  # no plan yet (it is being solved): nothing to track, no drive
             drive = 0.0
-            reference = (0.0, 0.0, 0.0, self.target_m)
+            reference = np.array([0.0, 0.0, 0.0, self.target_m])
             feedforward = 0.0
         else:
-            elapsed = (self._step_cycle + later - self.plan_start_cycle) * self.settings.period_s
-            state, feedforward = self._plan_sampler(plan).at(elapsed)
-            r0, r1, r2, r3 = state.tolist()
-            reference = (r0, r1, r2, r3 + plan.target_m)
-            e = estimate
-            error = (r0 - e[0], r1 - e[1], r2 - e[2], reference[3] - e[3])
+            state, feedforward = self._plan_sampler(plan).at(self._elapsed())
+            reference = state.copy()
+            reference[BALL_POSITION] += plan.target_m
+            r, e = reference.tolist(), self.estimate.tolist()
+            error = (r[0] - e[0], r[1] - e[1], r[2] - e[2], r[3] - e[3])
             drive = feedforward + _dot4(self._rows().K, error)
         if self.terminal and self.settings.rest_threshold:
             # at rest every drive smaller than the estimate's noise is a reaction to noise:
@@ -1755,30 +1721,8 @@ class ReplanningController:
             drive = math.copysign(max(abs(drive) - self._ramp_v(), 0.0), drive)
         if self.sine is not None and (self.terminal or plan is None):
             drive += feedforward
-        drive = guarded_voltage(self.design.guard, as_row4(estimate), drive)
-        return drive, reference, feedforward
-
-    def lookahead(self, count: int) -> tuple[float, ...]:
-        """The commands of the ``count`` periods after this one, as the law would make them
-        if no sample came: the estimate predicted through its own commands, the mode in
-        force kept (nothing re-planned or decided). Sent with this period's command, for a
-        plant to drive if the next commands are late (real time)."""
-        if count <= 0 or not self.cycle:
-            return ()
-        rows = self._rows().filter
-        gamma = self.settings.estimate_gamma
-        state: Vec = (*self.estimate.tolist(), self._gamma_error) if gamma else tuple(
-            self.estimate.tolist()
-        )
-        drive_v = self._last_drive_v
-        deadzone_v = self.design.identified.deadzone_v
-        commands = []
-        for later in range(1, count + 1):
-            state = _predicted(rows, state, drive_v)
-            command = self._compensate(self._drive_at(state[:4], later)[0])
-            commands.append(command)
-            drive_v = _dead_zone(command, deadzone_v)
-        return tuple(commands)
+        drive = guarded_voltage(d.guard, as_row4(self.estimate), drive)
+        return CycleRecord(0.0, reference, drive, self.terminal, feedforward, self.estimate.copy())
 
     def _maybe_replan(self) -> None:
         s = self.settings
@@ -1844,7 +1788,7 @@ def _observe(
     """The fixed-gain observer's step (without estimate_gamma): predict, then correct (with
     no measurement, the prediction)."""
     f = rows.filter
-    prior = _predicted(f, estimate, drive_v)
+    prior = tuple(_dot4(f.Ad[i], estimate) + f.bd[i] * drive_v for i in range(4))
     if y is None:
         return prior
     r0 = y[0] - f.angle_gain * prior[THETA]

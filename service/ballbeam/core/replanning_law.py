@@ -31,8 +31,7 @@ from collections.abc import Callable, Mapping
 
 import numpy as np
 
-from ballbeam.core.control import LOOKAHEAD_FLOOR, CycleOutput, PlanTaken
-from ballbeam.core.guard import NO_LATENESS, held_lateness
+from ballbeam.core.control import CycleOutput, PlanTaken
 from ballbeam.core.model import as_row4
 from ballbeam.core.plant import SensorReading
 from ballbeam.core.replanning import (
@@ -63,10 +62,7 @@ class ReplanningLaw:
     the target at each cycle's time; ``plan_delay_cycles``: the fewest cycles from a request
     to the step that takes its answer (≥ 1); ``planner``: solves requests in this process
     (None: the caller takes them, :meth:`take_request`, and offers the answers);
-    ``recorded`` (a replay): the answers the run took, by the cycle it took each;
-    ``lookahead_periods``: the most periods a command's look-ahead covers (0: none; real time
-    on the authenticated bus), as many as the loop has lately been late (its lateness held
-    for ``lateness_hold_cycles``) plus a few."""
+    ``recorded`` (a replay): the answers the run took, by the cycle it took each."""
 
     def __init__(
         self,
@@ -79,8 +75,6 @@ class ReplanningLaw:
         plan_delay_cycles: int,
         planner: Planner | None = None,
         recorded: Mapping[tuple[int, bool], PlanTaken] | None = None,
-        lookahead_periods: int = 0,
-        lateness_hold_cycles: int = 0,
     ) -> None:
         if plan_delay_cycles < 1:
             raise ValueError("a plan takes effect one cycle after its request at the soonest")
@@ -91,9 +85,6 @@ class ReplanningLaw:
         self.encoder_step_rad = encoder_step_rad
         self.adc_step_m = adc_step_m
         self.plan_delay_cycles = plan_delay_cycles
-        self.lookahead_periods = lookahead_periods
-        self.lateness_hold_cycles = lateness_hold_cycles
-        self._lateness = NO_LATENESS
         self.planner = planner
         self.recorded = recorded
         sine = (
@@ -195,10 +186,6 @@ class ReplanningLaw:
         self, reading: SensorReading | None, lateness_ns: int = 0, age_cycles: int = 0
     ) -> CycleOutput:
         controller = self.controller
-        if self.lookahead_periods:
-            self._lateness = held_lateness(
-                self._lateness, lateness_ns, self.lateness_hold_cycles
-            )
         if reading is not None and age_cycles > 0:
             # A sample of a cycle that went on without it: the filter takes it at its own
             # cycle and runs again to now (or, older than it remembers, it is history); this
@@ -267,14 +254,7 @@ class ReplanningLaw:
                     self._issued.append(request)
 
     def lookahead(self) -> tuple[float, ...]:
-        """The next periods' commands (:meth:`ReplanningController.lookahead`): a few more
-        than the loop has lately been late, at most ``lookahead_periods``."""
-        if not self.lookahead_periods or not self.started:
-            return ()
-        period_ns = round(self.period_s * 1e9)
-        late_periods = -(-self._lateness.worst_ns // period_ns)  # rounded up
-        count = min(self.lookahead_periods, LOOKAHEAD_FLOOR + late_periods)
-        return self.controller.lookahead(count)
+        return ()
 
     def _take_answer(self) -> None:
         """Before the step: the outstanding requests' answers that are in and due (the
