@@ -26,7 +26,7 @@ from ballbeam.core.guard import AngleGuard, make_angle_guard, make_soft_cap
 from ballbeam.core.law import ControlLaw, TrackerLaw
 from ballbeam.core.metrics import RunMetrics, compute_metrics
 from ballbeam.core.model import BALL_POSITION, LinearModel, PhysicalConstants, Row4, as_row4
-from ballbeam.core.observer import design_observer
+from ballbeam.core.observer import ObserverNoise, design_observers
 from ballbeam.core.planning.plan import Plan
 from ballbeam.core.plant import PlantPhysics
 from ballbeam.core.simulate import SimulationTrace, simulate_closed_loop
@@ -216,13 +216,22 @@ def controller_design(config: Config, plan: Plan | None = None) -> ControllerDes
         DEFAULT_POSITION_NOISE_M, adc_step_m / math.sqrt(12.0)
     )
 
+    # Every filter the design holds (tracking and at rest, at each noise level), designed
+    # together: (input noise, ball noise, noise level) → its law
+    tracking = (observer_cfg.input_noise_v, observer_cfg.ball_noise_m_s2)
+    resting = (observer_cfg.rest_input_noise_v, observer_cfg.rest_ball_noise_m_s2)
+    kinds = (tracking, resting) if observer_cfg.rest_filter else (tracking,)
+    levels = observer_cfg.noise_levels if observer_cfg.adapt_noise else ()
+    wanted = list(dict.fromkeys((*kind, level) for level in (1.0, *levels) for kind in kinds))
+    laws = dict(zip(wanted, _observer_laws(constants, period_s, tuple(
+        ObserverNoise(input_v, ball_m_s2, angle_noise_rad, position_noise_m * level)
+        for input_v, ball_m_s2, level in wanted
+    )), strict=True))
+
     def observer_law(
         input_noise_v: float, ball_noise_m_s2: float, noise_level: float = 1.0
     ) -> ObserverLaw:
-        return _observer_law(
-            constants, period_s, input_noise_v, ball_noise_m_s2, angle_noise_rad,
-            position_noise_m * noise_level,
-        )
+        return laws[input_noise_v, ball_noise_m_s2, noise_level]
 
     observer = observer_law(observer_cfg.input_noise_v, observer_cfg.ball_noise_m_s2)
     rest_observer = None
@@ -303,28 +312,20 @@ _DESIGN_CACHE_SIZE = 64
 def clear_design_caches() -> None:
     """Forget every kept plan and design piece: the next design costs what a fresh process
     pays (the benchmarks' one-shot figures)."""
-    for cached in (_time_optimal_plan, _observer_law, _stationary_tracker, _stationary_row,
+    for cached in (_time_optimal_plan, _observer_laws, _stationary_tracker, _stationary_row,
                    _guard):
         cached.cache_clear()
 
 
 @functools.lru_cache(maxsize=_DESIGN_CACHE_SIZE)
-def _observer_law(
-    constants: PhysicalConstants,
-    period_s: float,
-    input_noise_v: float,
-    ball_noise_m_s2: float,
-    angle_noise_rad: float,
-    position_noise_m: float,
-) -> ObserverLaw:
-    gains = design_observer(
-        LinearModel.from_constants(constants).discretize(period_s),
-        input_noise_v=input_noise_v,
-        ball_noise_m_s2=ball_noise_m_s2,
-        angle_noise_rad=angle_noise_rad,
-        position_noise_m=position_noise_m,
+def _observer_laws(
+    constants: PhysicalConstants, period_s: float, noises: tuple[ObserverNoise, ...]
+) -> tuple[ObserverLaw, ...]:
+    model = LinearModel.from_constants(constants).discretize(period_s)
+    return tuple(
+        ObserverLaw.from_arrays(gains.Ad, gains.Bd, gains.C, gains.L)
+        for gains in design_observers(model, noises)
     )
-    return ObserverLaw.from_arrays(gains.Ad, gains.Bd, gains.C, gains.L)
 
 
 @functools.lru_cache(maxsize=_DESIGN_CACHE_SIZE)
