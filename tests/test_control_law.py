@@ -514,6 +514,36 @@ def test_coasted_periods_are_predicted_on_what_the_plant_drove() -> None:
     assert driven == [2.0, 3.0, 3.0, 3.0, 3.0, 1.5, 1.5] and law.cycle == 8
 
 
+def test_the_re_planning_law_takes_late_samples_only_as_old_as_it_says() -> None:
+    """A late sample is run again through every period since: the law takes one at most
+    ``late_reading_cycles`` back (the daemon asks it), and steps through an older one as
+    through a period without a sample (one it would otherwise take: no sample came since)."""
+    from ballbeam.core.replanning_law import ReplanningLaw
+
+    config = load_config(PAPER, (*REPLANNING, "run.duration_s=0.3"))
+    trace = run_offline(config).trace
+    readings = [SensorReading(int(a), int(p)) for a, p in zip(
+        trace.angle_counts.tolist(), trace.position_counts.tolist(), strict=True)]
+    laws = []
+    for _ in range(3):
+        law = control_law(config)
+        assert isinstance(law, ReplanningLaw)
+        for reading in readings[:120]:
+            law.step(reading)
+        for _ in range(30):  # periods 120–149 without their samples
+            law.step(None)
+        laws.append(law)
+    oldest = laws[0].late_reading_cycles
+    assert 0 < oldest < 32
+    taken, history, plain = laws
+    taken.step(readings[150 - oldest], age_cycles=oldest)
+    history.step(readings[150 - oldest - 1], age_cycles=oldest + 1)
+    plain.step(None)
+    assert np.array_equal(history.controller.estimate, plain.controller.estimate)
+    assert not np.allclose(taken.controller.estimate, plain.controller.estimate, rtol=0,
+                           atol=1e-9)
+
+
 def test_a_late_sample_older_than_one_taken_since_or_than_remembered_is_history() -> None:
     """A sample of a cycle that had its own (or of one before a cycle that had one), or of
     one longer ago than the filter remembers, changes nothing."""

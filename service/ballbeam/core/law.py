@@ -48,9 +48,10 @@ class ControlLaw(Protocol):
         ...
 
     @property
-    def takes_late_readings(self) -> bool:
-        """Whether ``step`` corrects its estimate by a reading of an earlier cycle (else it
-        coasts through it, and the run counts the cycle as one without a sample)."""
+    def late_reading_cycles(self) -> int:
+        """The oldest reading ``step`` corrects its estimate by, in cycles back (0: none);
+        through an older one it coasts, and the run counts the cycle as one without a
+        sample."""
         ...
 
     def step(
@@ -107,8 +108,8 @@ class TrackerLaw:
         return self.state.prediction is not None
 
     @property
-    def takes_late_readings(self) -> bool:
-        return True
+    def late_reading_cycles(self) -> int:
+        return LATE_READING_CYCLES
 
     def step(
         self, reading: SensorReading | None, lateness_ns: int = 0, age_cycles: int = 0

@@ -46,6 +46,9 @@ from ballbeam.core.replanning import (
 )
 from ballbeam.core.task import SineWave, Task
 
+# The oldest sample the law takes late, in cycles back (older ones are history).
+LATE_SAMPLE_RERUN_CYCLES = 8
+
 # A step of the task takes effect at the first cycle at or after its instant: the cycle's time
 # k·period is computed with rounding, so the instant is looked up this much later.
 _CYCLE_TIME_SLACK_S = 1e-9
@@ -139,8 +142,11 @@ class ReplanningLaw:
         return self.controller.cycle > 0
 
     @property
-    def takes_late_readings(self) -> bool:
-        return True
+    def late_reading_cycles(self) -> int:
+        # Taking a late sample runs the filter again over every period since: its cost grows
+        # with the sample's age, and a loop behind its sample stream would fall further
+        # behind on older ones.
+        return LATE_SAMPLE_RERUN_CYCLES
 
     def request_cycle(self, request: Request) -> int:
         """The law's cycle at which ``request`` was made."""
@@ -188,9 +194,9 @@ class ReplanningLaw:
         controller = self.controller
         if reading is not None and age_cycles > 0:
             # A sample of a cycle that went on without it: the filter takes it at its own
-            # cycle and runs again to now (or, older than it remembers, it is history); this
+            # cycle and runs again to now (or, older than it takes, it is history); this
             # cycle has no sample of its own.
-            if self.started:
+            if self.started and age_cycles <= self.late_reading_cycles:
                 controller.take_late(
                     reading.angle_counts * self.encoder_step_rad,
                     reading.position_counts * self.adc_step_m, age_cycles,

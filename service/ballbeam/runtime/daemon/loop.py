@@ -19,7 +19,7 @@ import numpy as np
 from ballbeam.assembly import counts_per_measurement
 from ballbeam.config import Config
 from ballbeam.core.control import CycleOutput, PlanTaken
-from ballbeam.core.law import LATE_READING_CYCLES, ControlLaw
+from ballbeam.core.law import ControlLaw
 from ballbeam.core.plant import SensorReading
 from ballbeam.core.replanning import PlanAnswer, solve_design_request
 from ballbeam.core.replanning_law import ReplanningLaw
@@ -312,8 +312,7 @@ class ControllerDaemon:
             sample, late_periods = received
             age_cycles = late_periods // self.sample_periods_per_cycle
             if age_cycles and not (
-                self.law.started and self.law.takes_late_readings
-                and age_cycles <= LATE_READING_CYCLES
+                self.law.started and age_cycles <= self.law.late_reading_cycles
             ):
                 received, age_cycles = None, 0  # history: the cycle coasts
         if received is None:
