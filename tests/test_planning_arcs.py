@@ -230,3 +230,25 @@ def test_the_grid_planner_stops_at_its_lp_bound(monkeypatch: pytest.MonkeyPatch)
             max_lp_solves=3,
         )
     assert len(steps) == 3
+
+
+def test_the_newton_jacobian_is_the_residuals_derivative() -> None:
+    """The Jacobian the root-finder steps with, against central differences of its
+    residuals (an independent derivative), for a structure with a hold on the limit."""
+    p = arcs._Params(MODEL.A[1, 1] * -1.0, MODEL.B[1, 0], MODEL.A[2, 0])
+    problem = arcs._problem(p, PAPER_START, 0.0, 5.0, THETA_MAX)
+    signs, holds = [1, 0, -1, 1, -1], [0, 1, 0, 0, 0]
+    inputs = arcs._inputs(problem, signs, holds)
+    taus = [0.11, 0.35, 0.17, 0.21, 0.09]
+    _, states = arcs._residuals(problem, inputs, holds, taus)
+    jacobian = arcs._jacobian(problem, inputs, holds, taus, states)
+    step = 1e-6
+    for i in range(len(taus)):
+        up, down = list(taus), list(taus)
+        up[i] += step
+        down[i] -= step
+        difference = (
+            np.array(arcs._residuals(problem, inputs, holds, up)[0])
+            - np.array(arcs._residuals(problem, inputs, holds, down)[0])
+        ) / (2 * step)
+        np.testing.assert_allclose(jacobian[:, i], difference, rtol=1e-6, atol=1e-8)

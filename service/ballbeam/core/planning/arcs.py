@@ -150,40 +150,55 @@ def _inputs(problem: _Problem, signs: Sequence[int], holds: Sequence[int]) -> li
     return [0.0 if h else s * problem.voltage_v for s, h in zip(signs, holds, strict=True)]
 
 
-def _residual_and_jacobian(
+def _residuals(
     problem: _Problem, inputs: Sequence[float], holds: Sequence[int], taus: Sequence[float]
-) -> tuple[list[float], np.ndarray, list[State]]:
-    """Scaled residuals (m,), their Jacobian (m, n) and the states at the arc boundaries."""
+) -> tuple[list[float], list[State]]:
+    """Scaled residuals (m,) and the states at the arc boundaries."""
+    sc = problem.scales
+    states: list[State] = [problem.start]
+    for u, tau in zip(inputs, taus, strict=True):
+        states.append(_step(problem.p, states[-1], u, tau))
+    rows: list[float] = []
+    for k, hold in enumerate(holds):
+        if hold:
+            s = states[k]
+            rows += [(s[0] - hold * problem.theta_max_rad) / sc[0], s[1] / sc[1]]
+    end = states[-1]
+    rows += [end[j] / sc[j] for j in range(4)]
+    return rows, states
+
+
+def _jacobian(
+    problem: _Problem,
+    inputs: Sequence[float],
+    holds: Sequence[int],
+    taus: Sequence[float],
+    states: Sequence[State],
+) -> np.ndarray:
+    """The residuals' Jacobian (m, n) in the durations, at the arc boundaries ``states``
+    (a perturbation of arc i's end carried to each condition by the free response)."""
     p = problem.p
     sc = problem.scales
     n = len(taus)
-    states: list[State] = [problem.start]
-    for u, tau in zip(inputs, taus, strict=True):
-        states.append(_step(p, states[-1], u, tau))
     # arc boundary times: t_k = Σ_{j<k} τ_j
     times = [0.0]
     for tau in taus:
         times.append(times[-1] + tau)
     flows = [_flow(p, states[i + 1], inputs[i]) for i in range(n)]
-    rows: list[float] = []
     jac: list[list[float]] = []
     for k, hold in enumerate(holds):
         if not hold:
             continue
-        s = states[k]
-        rows += [(s[0] - hold * problem.theta_max_rad) / sc[0], s[1] / sc[1]]
         r0 = [0.0] * n
         r1 = [0.0] * n
         for i in range(k):
             d = _free(p, flows[i], times[k] - times[i + 1])
             r0[i], r1[i] = d[0] / sc[0], d[1] / sc[1]
         jac += [r0, r1]
-    end = states[-1]
-    rows += [end[j] / sc[j] for j in range(4)]
     cols = [_free(p, flows[i], times[n] - times[i + 1]) for i in range(n)]
     for j in range(4):
         jac.append([cols[i][j] / sc[j] for i in range(n)])
-    return rows, np.array(jac), states
+    return np.array(jac)
 
 
 @dataclass(frozen=True)
@@ -205,7 +220,8 @@ def _newton(
     steps from there overshoot into negative durations where exp(−aτ) explodes), projected
     onto τ ≥ 0."""
     x = np.maximum(np.array(taus, dtype=float), 0.0)
-    r_list, J, states = _residual_and_jacobian(problem, inputs, holds, x.tolist())
+    r_list, states = _residuals(problem, inputs, holds, x.tolist())
+    J = _jacobian(problem, inputs, holds, x.tolist(), states)
     r = np.array(r_list)
     cost = float(r @ r)
     damping = 1e-6
@@ -222,7 +238,7 @@ def _newton(
                 damping *= 10.0
                 continue
             trial = np.maximum(x + step, 0.0)
-            r_t_list, J_t, states_t = _residual_and_jacobian(problem, inputs, holds, trial.tolist())
+            r_t_list, states_t = _residuals(problem, inputs, holds, trial.tolist())
             r_t = np.array(r_t_list)
             cost_t = float(r_t @ r_t)
             if cost_t < cost:
@@ -231,7 +247,9 @@ def _newton(
             damping *= 10.0
         else:
             return _Root(x.tolist(), states, False)
-        x, r_list, r, J, states, cost = trial, r_t_list, r_t, J_t, states_t, cost_t
+        # (the Jacobian of an accepted step only: most trials of a failing root are not)
+        J = _jacobian(problem, inputs, holds, trial.tolist(), states_t)
+        x, r_list, r, states, cost = trial, r_t_list, r_t, states_t, cost_t
     return _Root(x.tolist(), states, max(abs(v) for v in r_list) < _TOLERANCE)
 
 
