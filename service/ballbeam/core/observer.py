@@ -144,38 +144,30 @@ def filtering_riccati(Ad: np.ndarray, C: np.ndarray, Qn: np.ndarray, Rn: np.ndar
     control equation (Adᵀ, Cᵀ): a few batched 4 × 4 solves in place of a QZ decomposition
     each. ConfigError where it does not converge (no stabilising solution)."""
     try:
-        solution = _doubling(Ad, C, Qn, Rn)
+        A = np.broadcast_to(Ad.T, Qn.shape).copy()
+        G = C.T @ np.linalg.solve(Rn, np.broadcast_to(C, (*Rn.shape[:-2], *C.shape)))
+        H = np.array(Qn, dtype=float)
+        identity = np.eye(Ad.shape[0])
+        for _ in range(_DOUBLING_STEPS):
+            W = identity + G @ H
+            inverse_A = np.linalg.solve(W, A)  # (I + G H)⁻¹ A
+            inverse_G = np.linalg.solve(W, G)  # (I + G H)⁻¹ G
+            A_t = A.swapaxes(-1, -2)
+            step = A_t @ H @ inverse_A
+            H = H + step
+            G = G + A @ inverse_G @ A_t
+            A = A @ inverse_A
+            if not np.isfinite(H).all():
+                break
+            if (np.abs(step).max(axis=(-2, -1)) <= _DOUBLING_TOLERANCE * np.abs(H).max(
+                axis=(-2, -1)
+            )).all():
+                solution: np.ndarray = 0.5 * (H + H.swapaxes(-1, -2))
+                return solution
     except np.linalg.LinAlgError:  # a singular step: no solution of this equation either
-        solution = None
-    if solution is None:
-        raise ConfigError("no steady-state Kalman filter for these noise levels (its Riccati "
-                          "equation has no stabilising solution)")
-    return solution
-
-
-def _doubling(Ad: np.ndarray, C: np.ndarray, Qn: np.ndarray, Rn: np.ndarray) -> np.ndarray | None:
-    """:func:`filtering_riccati`'s iteration; None where it has not converged."""
-    A = np.broadcast_to(Ad.T, Qn.shape).copy()
-    G = C.T @ np.linalg.solve(Rn, np.broadcast_to(C, (*Rn.shape[:-2], *C.shape)))
-    H = np.array(Qn, dtype=float)
-    identity = np.eye(Ad.shape[0])
-    for _ in range(_DOUBLING_STEPS):
-        W = identity + G @ H
-        inverse_A = np.linalg.solve(W, A)  # (I + G H)⁻¹ A
-        inverse_G = np.linalg.solve(W, G)  # (I + G H)⁻¹ G
-        A_t = A.swapaxes(-1, -2)
-        step = A_t @ H @ inverse_A
-        H = H + step
-        G = G + A @ inverse_G @ A_t
-        A = A @ inverse_A
-        if not np.isfinite(H).all():
-            break
-        if (np.abs(step).max(axis=(-2, -1)) <= _DOUBLING_TOLERANCE * np.abs(H).max(
-            axis=(-2, -1)
-        )).all():
-            solution: np.ndarray = 0.5 * (H + H.swapaxes(-1, -2))
-            return solution
-    return None
+        pass
+    raise ConfigError("no steady-state Kalman filter for these noise levels (its Riccati "
+                      "equation has no stabilising solution)")
 
 
 def predict(gains: ObserverGains, estimate: np.ndarray, input_v: float | np.ndarray) -> np.ndarray:

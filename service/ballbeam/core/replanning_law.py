@@ -220,7 +220,7 @@ class ReplanningLaw:
                 reading.angle_counts * self.encoder_step_rad,
                 reading.position_counts * self.adc_step_m,
             )
-        self._issue(controller)
+        self._issue()
         self._cycle += 1
         estimate = record.estimate if record.estimate is not None else controller.estimate
         taken, self._taken = tuple(self._taken), []
@@ -246,10 +246,11 @@ class ReplanningLaw:
                 applied_v = held_voltage_v
             self.controller.coast(applied_v)
             self._cycle += 1
-        self._issue(self.controller)
+        self._issue()
 
-    def _issue(self, controller: ReplanningController) -> None:
+    def _issue(self) -> None:
         """The requests the controller made: to the planner, or for the caller to take."""
+        controller = self.controller
         issued = [r for r in (controller.design_issued, controller.issued) if r is not None]
         controller.issued = controller.design_issued = None
         if self.recorded is None:  # (a replay answers from the log)

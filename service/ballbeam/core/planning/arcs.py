@@ -221,13 +221,15 @@ def _newton(
     onto τ ≥ 0."""
     x = np.maximum(np.array(taus, dtype=float), 0.0)
     r_list, states = _residuals(problem, inputs, holds, x.tolist())
-    J = _jacobian(problem, inputs, holds, x.tolist(), states)
     r = np.array(r_list)
     cost = float(r @ r)
     damping = 1e-6
     for _ in range(max_iterations):
         if max(abs(v) for v in r_list) < _TOLERANCE:
             return _Root(x.tolist(), states, True)
+        # the Jacobian where a step is taken from only: most trials of a failing root are
+        # rejected, and judged on their residuals alone
+        J = _jacobian(problem, inputs, holds, x.tolist(), states)
         H = J.T @ J
         g = J.T @ r
         scale = np.diag(H) + 1e-12
@@ -247,8 +249,6 @@ def _newton(
             damping *= 10.0
         else:
             return _Root(x.tolist(), states, False)
-        # (the Jacobian of an accepted step only: most trials of a failing root are not)
-        J = _jacobian(problem, inputs, holds, trial.tolist(), states_t)
         x, r_list, r, states, cost = trial, r_t_list, r_t, states_t, cost_t
     return _Root(x.tolist(), states, max(abs(v) for v in r_list) < _TOLERANCE)
 
