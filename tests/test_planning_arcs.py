@@ -252,3 +252,52 @@ def test_the_newton_jacobian_is_the_residuals_derivative() -> None:
             - np.array(arcs._residuals(problem, inputs, holds, down)[0])
         ) / (2 * step)
         np.testing.assert_allclose(jacobian[:, i], difference, rtol=1e-6, atol=1e-8)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_settle_plans_in_a_rest_band_are_the_fine_grid_optimum(seed: int) -> None:
+    """Inside a rest band (the ball within 0.5 mm of the target, rolling at most 1 mm/s, the
+    servo within 0.2° and turning): the settle plan keeps the servo within its quarter of a
+    degree, rests at the target by numerical integration, is no faster than the ball alone
+    at the limit's acceleration could be, and is the optimum that the grid LP on a 1 ms grid
+    approaches from above: within a step an arc, and the 0.5 % of the angle that the grid's
+    intersample margin takes off the holds."""
+    rng = np.random.default_rng(seed)
+    start = np.array([
+        math.radians(rng.uniform(-0.2, 0.2)), rng.uniform(-0.05, 0.05),
+        rng.uniform(-1e-3, 1e-3), rng.uniform(-5e-4, 5e-4),
+    ])
+    theta_max = math.radians(0.25)
+    plan = arcs.plan_settle(
+        arcs._params(MODEL), start, target_m=0.0, voltage_limit_v=1.5, theta_max_rad=theta_max
+    )
+    assert plan is not None
+    end, biggest = integrate(plan, start)
+    np.testing.assert_allclose(end, 0.0, atol=1e-9)
+    assert biggest <= plan.theta_max_rad * (1.0 + 1e-7)
+    grid = plan_time_optimal(
+        MODEL, start, voltage_limit_v=1.5, theta_max_rad=plan.theta_max_rad, step_s=1e-3,
+        max_lp_solves=60,
+    )
+    ball_only_s = time_optimal._ball_only_time_s(
+        start[3], start[2], abs(MODEL.A[2, 0]) * plan.theta_max_rad
+    )
+    assert ball_only_s <= plan.duration_s
+    assert -1e-9 <= grid.duration_s - plan.duration_s <= (
+        len(plan.input_v) * 1e-3 + 0.005 * plan.duration_s
+    )
+
+
+def test_a_settle_plan_holds_where_a_turning_servo_can_stop() -> None:
+    """A servo turning too fast to stop within the asked limit: the plan's limit is where
+    full braking stops it, and the plan still rests within it."""
+    start = np.array([math.radians(-0.24), -0.29, 1e-4, -3.5e-4])
+    plan = arcs.plan_settle(
+        arcs._params(MODEL), start, target_m=0.0, voltage_limit_v=1.5,
+        theta_max_rad=math.radians(0.25),
+    )
+    assert plan is not None
+    assert math.radians(0.25) < plan.theta_max_rad < math.radians(0.5)
+    end, biggest = integrate(plan, start)
+    np.testing.assert_allclose(end, 0.0, atol=1e-9)
+    assert biggest <= plan.theta_max_rad * (1.0 + 1e-7)

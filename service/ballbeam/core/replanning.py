@@ -87,6 +87,7 @@ from ballbeam.core.planning.arcs import (
     _step,
     _theta_extreme,
     plan_arcs,
+    plan_settle,
     replan,
 )
 from ballbeam.core.planning.lag_hold import _Params
@@ -531,6 +532,11 @@ class Settings:
     soft_zone_gain_per_s: float = 250.0  # the soft cap: allowed rate = gain × gap near it
     soft_rate_gain_per_s: float = 40.0  # how hard the rate is pulled back to the allowed rate
     rest_band_m: float = 5e-4  # the task's rest band: the ball within this of the target
+    rest_band_rad: float = math.radians(0.5)  # ... and the servo within this of level
+    # Inside the rest band a plan's servo stays inside it too (``plan_settle``): its moves
+    # are a few tenths of a degree, and this drive makes them last ~10 ms (a tracker's pace,
+    # not a kick) at no cost to the ball, whose time is spent on the holds.
+    settle_drive_v: float = 1.5
     terminal_exit_factor: float = 25.0  # the terminal LQR hands back beyond this × its level
     reshape: bool = False  # re-plans without a root re-shape the remaining arcs' inputs
     headroom_v: float = 0.3  # the plan's drive kept for re-shaping
@@ -1035,6 +1041,12 @@ class PlanRequest:
     # the sine's time at the request's state
     sine: tuple[float, float, float] | None = None
     sine_time_s: float = 0.0
+    # a fresh plan from inside the rest band: first one whose servo holds within
+    # ±settle_theta_rad and whose ball stays within settle_band_m of the target
+    settle_theta_rad: float = 0.0
+    settle_theta_limit_rad: float = 0.0  # (the angle a turning servo may be stopped at)
+    settle_band_m: float = 0.0
+    settle_drive_v: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -1156,6 +1168,17 @@ def _solve_plan(request: PlanRequest) -> PlanAnswer:
     if r.kind == "warm":
         assert r.plan is not None
         return _solve_warm(r, params, state)
+    if r.settle_theta_rad > 0.0:
+        settle = plan_settle(
+            params, state, target_m=r.target_m, voltage_limit_v=r.settle_drive_v,
+            theta_max_rad=r.settle_theta_rad,
+        )
+        if (
+            settle is not None
+            and settle.theta_max_rad <= r.settle_theta_limit_rad
+            and _stays_within(settle, r.settle_band_m)
+        ):
+            return PlanAnswer(r.cycle, settle, ("settle",))
     if r.kind == "near":
         empty = ArcPlan((), (), (), (0.0, 0.0, 0.0, 0.0), r.target_m, r.drive_limit_v,
                         r.theta_max_rad, params.pole_per_s, params.alpha, params.gamma)
@@ -1184,6 +1207,13 @@ def _solve_to_sine(r: PlanRequest) -> PlanAnswer:
             break
         duration_s = answer.plan.duration_s
     return answer
+
+
+def _stays_within(plan: ArcPlan, band_m: float) -> bool:
+    """Whether the plan's ball stays within ``band_m`` of its target (at the arc boundaries
+    and every millisecond between)."""
+    times = np.union1d(plan.switch_times_s, np.arange(0.0, plan.duration_s, 1e-3))
+    return bool(np.abs(plan.sample(times).states[:, BALL_POSITION]).max() <= band_m)
 
 
 def _sine_state(
@@ -1308,6 +1338,9 @@ class ReplanningController:
     reshaped: int = field(init=False, default=0)
     cold_plans: int = field(init=False, default=0)
     near_plans: int = field(init=False, default=0)
+    settle_plans: int = field(init=False, default=0)
+    _settle_guard_of: AngleGuard | None = field(init=False, default=None)
+    _settle_guard_made: AngleGuard | None = field(init=False, default=None)
     jumps: int = field(init=False, default=0)  # the ball's speed jumps admitted (_admit_jump)
     _jumps: JumpDetector = field(init=False, default_factory=lambda: JumpDetector())
     # the filter's (or the fixed-gain observer's) last steps, for a jump or a late sample to
@@ -1405,6 +1438,8 @@ class ReplanningController:
                 self.cold_plans += 1
             elif count == "near":
                 self.near_plans += 1
+            elif count == "settle":
+                self.settle_plans += 1
         if answer.plan is not None and not self.terminal:
             self.plan = answer.plan
             self.plan_start_cycle = request.cycle
@@ -1659,13 +1694,67 @@ class ReplanningController:
 
     def request_plan(self, state: np.ndarray) -> None:
         """Ask for a cold plan from ``state`` (the run's start, before its first step)."""
-        self._request(self._plan_request("cold", self._clipped(np.array(state, dtype=float))))
+        self._request(self._settling(
+            self._plan_request("cold", self._clipped(np.array(state, dtype=float)))
+        ))
 
     def _plan_from_estimate(self, near: bool = False, state: np.ndarray | None = None) -> None:
         """A fresh plan from the estimate (or ``state``); ``near``: close to the target, where
         the four-arc guess solves it directly (no grid plan). A plan not found keeps the
         plan in force."""
-        self._request(self._plan_request("near" if near else "cold", self._clipped(state)))
+        self._request(
+            self._settling(self._plan_request("near" if near else "cold", self._clipped(state)))
+        )
+
+    def _settling(self, request: PlanRequest) -> PlanRequest:
+        """A fresh plan from inside the rest band, asked to keep the servo and the ball in it
+        (the ball's margin: the estimate's z σ). A sine's plans are to where it will be."""
+        s = self.settings
+        if self.sine is not None:
+            return request
+        position_var = self._rows().estimate_covariance[BALL_POSITION][BALL_POSITION]
+        band_m = s.rest_band_m - s.confidence_z * math.sqrt(position_var)
+        # the plan holds within half the band: the other half is the tracker's (its
+        # corrections of the ball tilt the servo past the plan, up to the band's guard) or
+        # for stopping a servo that turns
+        limit_rad = self._settle_limit_rad()
+        theta, _, _, position = request.state
+        if min(band_m, limit_rad) <= 0.0 or abs(position - self.target_m) > band_m or (
+            abs(theta) > limit_rad
+        ):
+            return request
+        return replace(
+            request, settle_theta_rad=0.5 * s.rest_band_rad, settle_theta_limit_rad=limit_rad,
+            settle_band_m=band_m, settle_drive_v=min(s.settle_drive_v, self.design.drive_limit_v),
+        )
+
+    def _settles(self, plan: ArcPlan) -> bool:
+        """Whether ``plan`` is a settling plan (its servo within the rest band)."""
+        return plan.theta_max_rad < self.settings.rest_band_rad
+
+    def _settle_limit_rad(self) -> float:
+        """The servo's limit inside the rest band: the band less the estimate's error (z σ,
+        and half a count of bias in a slowing servo), as the angle guard's at the limit."""
+        s = self.settings
+        theta_sigma = math.sqrt(self._rows().estimate_covariance[THETA][THETA])
+        return s.rest_band_rad - 0.5 * s.encoder_step_rad - s.confidence_z * theta_sigma
+
+    def _settle_guard(self) -> AngleGuard:
+        """The design's angle guard moved to the rest band's limit (its tables are of the gap
+        to the limit and of the servo's rate, not of where the limit is)."""
+        guard = self.design.guard
+        if self._settle_guard_of is not guard:
+            limit = self._settle_limit_rad()
+            soft = guard.soft
+            self._settle_guard_of = guard
+            self._settle_guard_made = replace(
+                guard, theta_limit_rad=limit,
+                soft=None if soft is None else replace(
+                    soft, theta_limit_rad=limit - self.settings.encoder_step_rad
+                ),
+            )
+        assert self._settle_guard_made is not None
+        return self._settle_guard_made
 
     def _elapsed(self) -> float:
         return (self.cycle - self.plan_start_cycle) * self.settings.period_s
@@ -1721,7 +1810,9 @@ class ReplanningController:
             drive = math.copysign(max(abs(drive) - self._ramp_v(), 0.0), drive)
         if self.sine is not None and (self.terminal or plan is None):
             drive += feedforward
-        drive = guarded_voltage(d.guard, as_row4(self.estimate), drive)
+        settling = not self.terminal and plan is not None and self._settles(plan)
+        guard = self._settle_guard() if settling else d.guard
+        drive = guarded_voltage(guard, as_row4(self.estimate), drive)
         return CycleRecord(0.0, reference, drive, self.terminal, feedforward, self.estimate.copy())
 
     def _maybe_replan(self) -> None:
@@ -1729,6 +1820,11 @@ class ReplanningController:
         plan = self.plan
         assert plan is not None
         if (self.cycle - self.plan_start_cycle) % s.replan_every or self.outstanding is not None:
+            return
+        if self._settles(plan):
+            # settling inside the band: the tracker holds it on this slow plan (a re-plan's
+            # root from inside a hold is ill-posed, and a fresh one swings the servo again);
+            # its end hands over to the terminal regulator or settles again
             return
         elapsed = self._elapsed()
         sampler = self._plan_sampler(plan)

@@ -732,3 +732,109 @@ def replan(
             return None
         solved = min(found, key=lambda r: math.fsum(r[2]))
     return _make(problem, target, solved)
+
+
+
+def _servo_move(
+    p: _Params, theta: float, rate: float, theta_to: float, voltage_v: float
+) -> tuple[int, float, float] | None:
+    """The servo's bang-bang from (θ, θ̇) to rest at ``theta_to``: (sign of the first arc, its
+    duration, the braking arc's duration). The first arc's sign is toward ``theta_to`` from
+    where braking at once would stop; it lasts at least until any speed the other way is
+    gone, and from there the end angle grows with it, so bisection finds it."""
+    a = p.pole_per_s
+    start: State = (theta, rate, 0.0, 0.0)
+
+    def until_still(sign: int) -> float:  # under sign·U, the time for a speed against it
+        w = sign * voltage_v * p.alpha / a
+        return math.log((rate - w) / -w) / a if rate * sign < 0.0 else 0.0
+
+    def ends_at(sign: int, first_s: float) -> float:
+        s = _step(p, start, sign * voltage_v, first_s)
+        w = sign * voltage_v * p.alpha / a
+        return _step(p, s, -sign * voltage_v, math.log((s[1] + w) / w) / a)[0]
+
+    still = -1 if rate > 0.0 else 1
+    stop = _step(p, start, still * voltage_v, until_still(still))[0]
+    sign = 1 if theta_to > stop else -1
+    low = until_still(sign)
+    high = low + 1.0 / a
+    while (ends_at(sign, high) - theta_to) * sign < 0.0:
+        low, high = high, 2.0 * high - low
+    for _ in range(60):
+        middle = 0.5 * (low + high)
+        if (ends_at(sign, middle) - theta_to) * sign < 0.0:
+            low = middle
+        else:
+            high = middle
+    first_s = 0.5 * (low + high)
+    s = _step(p, start, sign * voltage_v, first_s)
+    w = sign * voltage_v * p.alpha / a
+    return sign, first_s, math.log((s[1] + w) / w) / a
+
+
+def plan_settle(
+    params: _Params,
+    state: np.ndarray | Sequence[float],
+    *,
+    target_m: float,
+    voltage_limit_v: float,
+    theta_max_rad: float,
+) -> ArcPlan | None:
+    """The minimum-time path to rest at ``target_m`` for a small ``theta_max_rad`` (a rest
+    band's few tenths of a degree): the servo swings onto one limit, holds while the ball
+    gathers speed, crosses to the other, holds while it brakes, and comes back to level. The
+    grid planner cannot resolve such a path (its servo moves last milliseconds, its holds
+    most of a second), so the structure is given and the guess made in closed form: each
+    servo move the servo's own bang-bang, the holds those of a double integrator of
+    acceleration ±γθm. A servo moving too fast to stop within θm holds where it can stop
+    (the plan's ``theta_max_rad`` says which). None where no root is found (the caller plans
+    otherwise)."""
+    p = params
+    theta, rate = float(state[0]), float(state[1])
+    if rate:
+        brake = -1.0 if rate > 0.0 else 1.0
+        w = brake * voltage_limit_v * p.alpha / p.pole_per_s
+        until_still = math.log((rate - w) / -w) / p.pole_per_s
+        stop = _step(p, (theta, rate, 0.0, 0.0), brake * voltage_limit_v, until_still)[0]
+        theta_max_rad = max(theta_max_rad, abs(stop) * (1.0 + 1e-6))
+    problem = _problem(p, state, target_m, voltage_limit_v, theta_max_rad)
+    theta, rate, speed, position = problem.start
+    if not any(problem.start):
+        return _make(problem, target_m, ([], [], []))
+    accel = abs(p.gamma) * theta_max_rad
+    found: list[Guess] = []
+    for sigma in (1, -1):
+        first = _servo_move(p, theta, rate, sigma * theta_max_rad, voltage_limit_v)
+        across = _servo_move(p, sigma * theta_max_rad, 0.0, -sigma * theta_max_rad,
+                             voltage_limit_v)
+        back = _servo_move(p, -sigma * theta_max_rad, 0.0, 0.0, voltage_limit_v)
+        if first is None or across is None or back is None:
+            continue
+        # the ball on the hold at σθm accelerates this way; a double integrator's bang-bang
+        # from (x, ẋ) to rest: gather speed to the peak, brake to rest at the origin
+        ball_sign = sigma * (1 if p.gamma > 0 else -1)
+        peak_sq = 0.5 * speed * speed - ball_sign * accel * position
+        if peak_sq <= 0.0:
+            continue
+        peak = math.sqrt(peak_sq)
+        gather_s = (peak - ball_sign * speed) / accel
+        brake_s = peak / accel
+        moves_s = first[1] + first[2], across[1] + across[2], back[1] + back[2]
+        guess: Guess = (
+            [first[0], -first[0], 0, -sigma, sigma, 0, sigma, -sigma],
+            [0, 0, sigma, 0, 0, -sigma, 0, 0],
+            [first[1], first[2], max(gather_s - 0.5 * (moves_s[0] + moves_s[1]), _SEED_S),
+             across[1], across[2], max(brake_s - 0.5 * (moves_s[1] + moves_s[2]), _SEED_S),
+             back[1], back[2]],
+        )
+        solved = solve_arcs(problem, *guess, _COLD_ITERATIONS)
+        if solved is not None:
+            found.append(solved)
+    for sigma in (1, -1):  # a move too small to reach the limits: four arcs, no hold
+        solved = solve_arcs(problem, _alternating(sigma, 4), [0] * 4, [_SEED_S] * 4)
+        if solved is not None:
+            found.append(solved)
+    if not found:
+        return None
+    return _make(problem, target_m, min(found, key=lambda r: math.fsum(r[2])))
