@@ -1250,7 +1250,12 @@ def _solve_warm(r: PlanRequest, params: _Params, from_state: np.ndarray) -> Plan
     plan = r.plan
     assert plan is not None
     warm = replace(plan, voltage_limit_v=r.drive_limit_v)
-    new = replan(warm, r.elapsed_s, from_state, target_m=r.target_m, params=params)
+    # a root with arcs added is taken only for a detour or a new model: the repairs that
+    # would find one are most of a warm re-plan's work otherwise, and thrown away
+    new = replan(
+        warm, r.elapsed_s, from_state, target_m=r.target_m, params=params,
+        repairs=r.far or r.moved,
+    )
     counts: tuple[str, ...] = ("replan",)
     keeps_arcs = new is not None and len(new.input_v) <= len(plan.shifted(r.elapsed_s)[0])
     if new is not None and (keeps_arcs or r.far or (r.moved and not r.reshape)):

@@ -715,10 +715,13 @@ def replan(
     *,
     target_m: float | None = None,
     params: _Params | None = None,
+    repairs: bool = True,
 ) -> ArcPlan | None:
     """The minimum-time path from ``state`` at ``elapsed_s`` into ``plan``, warm-started from
     the plan's remaining arcs (optionally to a new target or with a new model). None when
-    Newton finds no valid root from those guesses (the caller keeps its plan or plans cold)."""
+    Newton finds no valid root from those guesses (the caller keeps its plan or plans cold).
+    ``repairs``: where the remaining arcs have no root, try the structures with arcs added
+    (``_repairs``); False for a caller that would not take a root with more arcs."""
     p = params or plan.params
     target = plan.target_m if target_m is None else target_m
     problem = _problem(p, state, target, plan.voltage_limit_v, plan.theta_max_rad)
@@ -727,12 +730,13 @@ def replan(
         guess = ([1, -1, 1, -1], [0, 0, 0, 0], [_SEED_S] * 4)
     solved = solve_arcs(problem, *guess)
     if solved is None:
+        if not repairs:
+            return None
         found = [r for g in _repairs(*guess) if (r := solve_arcs(problem, *g)) is not None]
         if not found:
             return None
         solved = min(found, key=lambda r: math.fsum(r[2]))
     return _make(problem, target, solved)
-
 
 
 def _servo_move(
