@@ -739,9 +739,22 @@ def replan(
     return _make(problem, target, solved)
 
 
+def _until_still(p: _Params, rate: float, input_v: float) -> float:
+    """How long ``input_v`` takes to stop a servo turning at ``rate`` against it (0 if it
+    turns the same way or not at all)."""
+    w = input_v * p.alpha / p.pole_per_s
+    return math.log((rate - w) / -w) / p.pole_per_s if rate * input_v < 0.0 else 0.0
+
+
+def _stopping_angle(p: _Params, theta: float, rate: float, voltage_v: float) -> float:
+    """Where the servo comes to rest under full braking at ``voltage_v`` from (θ, θ̇)."""
+    brake_v = -voltage_v if rate > 0.0 else voltage_v
+    return _step(p, (theta, rate, 0.0, 0.0), brake_v, _until_still(p, rate, brake_v))[0]
+
+
 def _servo_move(
     p: _Params, theta: float, rate: float, theta_to: float, voltage_v: float
-) -> tuple[int, float, float] | None:
+) -> tuple[int, float, float]:
     """The servo's bang-bang from (θ, θ̇) to rest at ``theta_to``: (sign of the first arc, its
     duration, the braking arc's duration). The first arc's sign is toward ``theta_to`` from
     where braking at once would stop; it lasts at least until any speed the other way is
@@ -749,19 +762,13 @@ def _servo_move(
     a = p.pole_per_s
     start: State = (theta, rate, 0.0, 0.0)
 
-    def until_still(sign: int) -> float:  # under sign·U, the time for a speed against it
-        w = sign * voltage_v * p.alpha / a
-        return math.log((rate - w) / -w) / a if rate * sign < 0.0 else 0.0
-
     def ends_at(sign: int, first_s: float) -> float:
         s = _step(p, start, sign * voltage_v, first_s)
         w = sign * voltage_v * p.alpha / a
         return _step(p, s, -sign * voltage_v, math.log((s[1] + w) / w) / a)[0]
 
-    still = -1 if rate > 0.0 else 1
-    stop = _step(p, start, still * voltage_v, until_still(still))[0]
-    sign = 1 if theta_to > stop else -1
-    low = until_still(sign)
+    sign = 1 if theta_to > _stopping_angle(p, theta, rate, voltage_v) else -1
+    low = _until_still(p, rate, sign * voltage_v)
     high = low + 1.0 / a
     while (ends_at(sign, high) - theta_to) * sign < 0.0:
         low, high = high, 2.0 * high - low
@@ -795,12 +802,8 @@ def plan_settle(
     (the plan's ``theta_max_rad`` says which). None where no root is found (the caller plans
     otherwise)."""
     p = params
-    theta, rate = float(state[0]), float(state[1])
-    if rate:
-        brake = -1.0 if rate > 0.0 else 1.0
-        w = brake * voltage_limit_v * p.alpha / p.pole_per_s
-        until_still = math.log((rate - w) / -w) / p.pole_per_s
-        stop = _step(p, (theta, rate, 0.0, 0.0), brake * voltage_limit_v, until_still)[0]
+    stop = _stopping_angle(p, float(state[0]), float(state[1]), voltage_limit_v)
+    if state[1]:
         theta_max_rad = max(theta_max_rad, abs(stop) * (1.0 + 1e-6))
     problem = _problem(p, state, target_m, voltage_limit_v, theta_max_rad)
     theta, rate, speed, position = problem.start
@@ -813,8 +816,6 @@ def plan_settle(
         across = _servo_move(p, sigma * theta_max_rad, 0.0, -sigma * theta_max_rad,
                              voltage_limit_v)
         back = _servo_move(p, -sigma * theta_max_rad, 0.0, 0.0, voltage_limit_v)
-        if first is None or across is None or back is None:
-            continue
         # the ball on the hold at σθm accelerates this way; a double integrator's bang-bang
         # from (x, ẋ) to rest: gather speed to the peak, brake to rest at the origin
         ball_sign = sigma * (1 if p.gamma > 0 else -1)
