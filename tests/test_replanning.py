@@ -417,7 +417,7 @@ def test_the_plain_float_filter_step_is_the_textbook_kalman_filter() -> None:
 
     controller = ReplanningController(Settings(), np.zeros(4))
     d = controller.design
-    rows = _CycleRows.of(d, controller.settings.period_s).filter
+    rows = _CycleRows.of(d, controller.settings).filter
     rng = np.random.default_rng(27)
     scales = np.array([0.3, 3.0, 0.1, 0.1, 0.05])  # θ, θ̇, ẋ, x, δγ
     worst = 0.0

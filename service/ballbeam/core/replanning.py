@@ -867,23 +867,46 @@ class _CycleRows:
     # the largest level of the terminal LQR's Lyapunov function on which its drive stays
     # within the drive limit (a sine's terminal set)
     unsaturated_level: float
+    # Inside the rest band (settling plans): the ball's band less z σ of its estimate, the
+    # servo's limit (the band less the estimate's error: z σ, and half a count of bias in a
+    # slowing servo, as at the angle limit) and the design's angle guard moved to that limit
+    # (its tables are of the gap to the limit and of the servo's rate, not of where it is)
+    settle_band_m: float
+    settle_limit_rad: float
+    settle_guard: AngleGuard
 
     @classmethod
-    def of(cls, d: _Design, period_s: float) -> _CycleRows:
+    def of(cls, d: _Design, s: Settings) -> _CycleRows:
         K_terminal, P_terminal = _vec(d.K_terminal), _mat(d.P_terminal)
+        covariance = _mat(d.estimate_covariance)
+        z = s.confidence_z
+        settle_limit = (
+            s.rest_band_rad - 0.5 * s.encoder_step_rad - z * math.sqrt(covariance[THETA][THETA])
+        )
+        soft = d.guard.soft
         return cls(
             design=d,
             filter=FilterRows(
-                period_s=period_s, Ad=_mat(d.Ad), bd=_vec(d.bd),
+                period_s=s.period_s, Ad=_mat(d.Ad), bd=_vec(d.bd),
                 process_noise=_mat(d.process_noise),
                 ball_process_noise=_mat(d.ball_process_noise),
                 measurement_noise=_mat(d.measurement_noise),
                 angle_gain=float(_C[0, THETA]), position_gain=float(_C[1, BALL_POSITION]),
             ),
             L=_mat(d.L), K=_vec(d.K), K_terminal=K_terminal,
-            P_terminal=P_terminal, estimate_covariance=_mat(d.estimate_covariance),
+            P_terminal=P_terminal, estimate_covariance=covariance,
             ball_information=_mat(d.ball_information),
             unsaturated_level=d.drive_max_v**2 / _inverse_quadratic(P_terminal, K_terminal),
+            settle_band_m=(
+                s.rest_band_m - z * math.sqrt(covariance[BALL_POSITION][BALL_POSITION])
+            ),
+            settle_limit_rad=settle_limit,
+            settle_guard=replace(
+                d.guard, theta_limit_rad=settle_limit,
+                soft=None if soft is None else replace(
+                    soft, theta_limit_rad=settle_limit - s.encoder_step_rad
+                ),
+            ),
         )
 
 
@@ -1130,7 +1153,7 @@ def solve_design_request(request: DesignRequest) -> DesignAnswer:
     design = _design(learnt.identified, request.settings, learnt.position_noise_m)
     return DesignAnswer(
         request.cycle, design, learnt.identification, learnt.noise_windows,
-        _CycleRows.of(design, request.settings.period_s),
+        _CycleRows.of(design, request.settings),
     )
 
 
@@ -1344,8 +1367,6 @@ class ReplanningController:
     cold_plans: int = field(init=False, default=0)
     near_plans: int = field(init=False, default=0)
     settle_plans: int = field(init=False, default=0)
-    _settle_guard_of: AngleGuard | None = field(init=False, default=None)
-    _settle_guard_made: AngleGuard | None = field(init=False, default=None)
     jumps: int = field(init=False, default=0)  # the ball's speed jumps admitted (_admit_jump)
     _jumps: JumpDetector = field(init=False, default_factory=lambda: JumpDetector())
     # the filter's (or the fixed-gain observer's) last steps, for a jump or a late sample to
@@ -1391,7 +1412,7 @@ class ReplanningController:
         """The design in force as the cycle's tuples (made again when the design changes)."""
         rows = self._cycle_rows
         if rows is None or rows.design is not self.design:
-            rows = self._cycle_rows = _CycleRows.of(self.design, self.settings.period_s)
+            rows = self._cycle_rows = _CycleRows.of(self.design, self.settings)
         return rows
 
     @property
@@ -1713,16 +1734,15 @@ class ReplanningController:
 
     def _settling(self, request: PlanRequest) -> PlanRequest:
         """A fresh plan from inside the rest band, asked to keep the servo and the ball in it
-        (the ball's margin: the estimate's z σ). A sine's plans are to where it will be."""
+        (the margins: ``_CycleRows``). A sine's plans are to where it will be."""
         s = self.settings
         if self.sine is not None:
             return request
-        position_var = self._rows().estimate_covariance[BALL_POSITION][BALL_POSITION]
-        band_m = s.rest_band_m - s.confidence_z * math.sqrt(position_var)
+        rows = self._rows()
+        band_m, limit_rad = rows.settle_band_m, rows.settle_limit_rad
         # the plan holds within half the band: the other half is the tracker's (its
         # corrections of the ball tilt the servo past the plan, up to the band's guard) or
         # for stopping a servo that turns
-        limit_rad = self._settle_limit_rad()
         theta, _, _, position = request.state
         if min(band_m, limit_rad) <= 0.0 or abs(position - self.target_m) > band_m or (
             abs(theta) > limit_rad
@@ -1736,30 +1756,6 @@ class ReplanningController:
     def _settles(self, plan: ArcPlan) -> bool:
         """Whether ``plan`` is a settling plan (its servo within the rest band)."""
         return plan.theta_max_rad < self.settings.rest_band_rad
-
-    def _settle_limit_rad(self) -> float:
-        """The servo's limit inside the rest band: the band less the estimate's error (z σ,
-        and half a count of bias in a slowing servo), as the angle guard's at the limit."""
-        s = self.settings
-        theta_sigma = math.sqrt(self._rows().estimate_covariance[THETA][THETA])
-        return s.rest_band_rad - 0.5 * s.encoder_step_rad - s.confidence_z * theta_sigma
-
-    def _settle_guard(self) -> AngleGuard:
-        """The design's angle guard moved to the rest band's limit (its tables are of the gap
-        to the limit and of the servo's rate, not of where the limit is)."""
-        guard = self.design.guard
-        if self._settle_guard_of is not guard:
-            limit = self._settle_limit_rad()
-            soft = guard.soft
-            self._settle_guard_of = guard
-            self._settle_guard_made = replace(
-                guard, theta_limit_rad=limit,
-                soft=None if soft is None else replace(
-                    soft, theta_limit_rad=limit - self.settings.encoder_step_rad
-                ),
-            )
-        assert self._settle_guard_made is not None
-        return self._settle_guard_made
 
     def _elapsed(self) -> float:
         return (self.cycle - self.plan_start_cycle) * self.settings.period_s
@@ -1816,7 +1812,7 @@ class ReplanningController:
         if self.sine is not None and (self.terminal or plan is None):
             drive += feedforward
         settling = not self.terminal and plan is not None and self._settles(plan)
-        guard = self._settle_guard() if settling else d.guard
+        guard = self._rows().settle_guard if settling else d.guard
         drive = guarded_voltage(guard, as_row4(self.estimate), drive)
         return CycleRecord(0.0, reference, drive, self.terminal, feedforward, self.estimate.copy())
 

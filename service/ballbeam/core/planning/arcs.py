@@ -759,29 +759,26 @@ def _servo_move(
     duration, the braking arc's duration). The first arc's sign is toward ``theta_to`` from
     where braking at once would stop; it lasts at least until any speed the other way is
     gone, and from there the end angle grows with it, so bisection finds it."""
-    a = p.pole_per_s
     start: State = (theta, rate, 0.0, 0.0)
-
-    def ends_at(sign: int, first_s: float) -> float:
-        s = _step(p, start, sign * voltage_v, first_s)
-        w = sign * voltage_v * p.alpha / a
-        return _step(p, s, -sign * voltage_v, math.log((s[1] + w) / w) / a)[0]
-
     sign = 1 if theta_to > _stopping_angle(p, theta, rate, voltage_v) else -1
+
+    def ends(first_s: float) -> tuple[float, float]:  # (the angle at rest, the braking arc)
+        s = _step(p, start, sign * voltage_v, first_s)
+        brake_s = _until_still(p, s[1], -sign * voltage_v)
+        return _step(p, s, -sign * voltage_v, brake_s)[0], brake_s
+
     low = _until_still(p, rate, sign * voltage_v)
-    high = low + 1.0 / a
-    while (ends_at(sign, high) - theta_to) * sign < 0.0:
+    high = low + 1.0 / p.pole_per_s
+    while (ends(high)[0] - theta_to) * sign < 0.0:
         low, high = high, 2.0 * high - low
     for _ in range(60):
         middle = 0.5 * (low + high)
-        if (ends_at(sign, middle) - theta_to) * sign < 0.0:
+        if (ends(middle)[0] - theta_to) * sign < 0.0:
             low = middle
         else:
             high = middle
     first_s = 0.5 * (low + high)
-    s = _step(p, start, sign * voltage_v, first_s)
-    w = sign * voltage_v * p.alpha / a
-    return sign, first_s, math.log((s[1] + w) / w) / a
+    return sign, first_s, ends(first_s)[1]
 
 
 def plan_settle(
