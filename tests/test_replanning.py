@@ -13,6 +13,8 @@ import pytest
 from ballbeam.config import load_config
 from ballbeam.core.plant import EmulatedPlant, PlantPhysics, read_sensors
 from ballbeam.core.replanning import (
+    DeadZoneLikelihood,
+    Identification,
     JumpDetector,
     ReplanningController,
     Settings,
@@ -45,9 +47,13 @@ def test_double_integral_of_a_held_input_is_exact() -> None:
     assert got == pytest.approx(expected, abs=1e-15)
 
 
-def _servo_run(params: EmulatedPlant, seconds: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Encoder angles (n + 1,) and commands (n,): held commands of random size 0.6–5 V and
-    sign, 20–80 ms each, the servo kept within ±40° by the sign."""
+def _servo_run(
+    params: EmulatedPlant, seconds: float, seed: int, sizes_v: tuple[float, float] = (0.6, 5.0),
+    within_rad: float = 0.35,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Encoder angles (n + 1,) and commands (n,): held commands of random size (``sizes_v``,
+    default 0.6–5 V) and sign, 20–80 ms each, the servo kept within ``within_rad`` by the
+    sign."""
     rng = np.random.default_rng(seed)
     physics = PlantPhysics(params)
     state = np.zeros(4)
@@ -56,8 +62,11 @@ def _servo_run(params: EmulatedPlant, seconds: float, seed: int) -> tuple[np.nda
     for _ in range(round(seconds / PERIOD_S)):
         thetas.append(read_sensors(params, state, 0.0).angle_counts * params.encoder_step_rad)
         if left == 0:
-            sign = -math.copysign(1.0, state[0]) if abs(state[0]) > 0.35 else rng.choice((-1, 1))
-            command, left = sign * rng.uniform(0.6, 5.0), int(rng.integers(20, 80))
+            sign = (
+                -math.copysign(1.0, state[0]) if abs(state[0]) > within_rad
+                else rng.choice((-1, 1))
+            )
+            command, left = sign * rng.uniform(*sizes_v), int(rng.integers(20, 80))
         left -= 1
         commands.append(command)
         state = physics.advance(state, command, 10)
@@ -90,6 +99,55 @@ def test_servo_identification_recovers_the_plants_gains(motor: float, deadzone_v
     # the stated confidence covers the error
     truth = np.array([params.alpha_beta, params.alpha, params.alpha * params.deadzone_v])
     assert np.all(np.abs(ls.mean - truth) < 4.0 * sigma)
+
+
+@pytest.mark.parametrize(
+    ("motor", "deadzone_v"), [(0.8, 0.4), (1.2, 0.0), (0.9, 0.1), (1.0, 0.25)]
+)
+def test_small_commands_tell_the_dead_zone(motor: float, deadzone_v: float) -> None:
+    """Commands of 0–0.5 V about level (a terminal regulator's), the plant's own dead zone
+    against the grid's posterior from a broad prior; and folded into a least squares that has
+    seen only full-size bangs (α and c = α·d confounded), the joint's d and its σ follow."""
+    params = plant(f"plant.motor_gain_scale={motor}", f"plant.deadzone_v={deadzone_v}")
+    thetas, commands = _servo_run(params, 2.0, seed=7, sizes_v=(0.0, 0.5), within_rad=0.02)
+    s = Settings()
+    identification = Identification.prior(s)
+    grid = identification.deadzone
+    window = 40
+    for start in range(0, len(commands) - window, window):
+        assert grid.add(
+            thetas[start : start + window + 1], commands[start : start + window],
+            params.alpha_beta, params.alpha, PERIOD_S,
+        )
+    mean_v, std_v = grid.posterior(s.prior_deadzone_v, s.prior_deadzone_std_v)
+    assert mean_v == pytest.approx(deadzone_v, abs=0.015)
+    assert abs(mean_v - deadzone_v) < 4.0 * std_v
+    # bangs of one size only: the least squares alone cannot place d
+    bangs, bang_commands = _servo_run(params, 1.0, seed=8, sizes_v=(4.9, 5.0))
+    for start in range(0, len(bang_commands) - window, window):
+        identification.motor.add(*servo_window(
+            bangs[start : start + window + 1], bang_commands[start : start + window], PERIOD_S
+        ))
+    alone = identification.motor
+    assert math.sqrt(alone.covariance[2, 2]) / alone.mean[1] > 5.0 * std_v
+    identified = identification.identified(s)
+    assert identified.deadzone_v == pytest.approx(deadzone_v, abs=0.02)
+    assert identified.deadzone_std_v == pytest.approx(std_v, rel=0.5)
+    assert identified.alpha == pytest.approx(params.alpha, rel=0.03)
+
+
+def test_a_servo_that_a_small_command_cannot_move_bounds_the_dead_zone_from_below() -> None:
+    """The servo stays put under 0.3 V for 40 ms: a d 0.05 V below that would have turned it
+    α·0.05·t²/2, three encoder counts, so every d below 0.25 V is ruled out; the prior's mass
+    above 0.3 V is kept."""
+    grid = DeadZoneLikelihood(np.arange(0.0, 2.5, 0.005), 2.0 * math.pi / 4096 / math.sqrt(12))
+    assert grid.add(np.zeros(41), np.full(40, 0.3), 58.0, 109.0, PERIOD_S)
+    mean_v, _ = grid.posterior(0.2, 0.12)
+    # a Gaussian (0.2, 0.12) cut below at 0.3: its mean is above 0.3
+    assert 0.3 < mean_v < 0.4
+    weights = np.exp(grid.log_likelihood - grid.log_likelihood.max())
+    assert weights[grid.grid_v < 0.25].max() < 1e-6
+    assert weights[grid.grid_v >= 0.3].min() == pytest.approx(1.0)
 
 
 @pytest.mark.parametrize("ball", [0.7, 1.3])

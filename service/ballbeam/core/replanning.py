@@ -242,6 +242,60 @@ def servo_window(
     return y, nuisance, regressors
 
 
+class DeadZoneLikelihood:
+    """The dead zone d's log-likelihood on a grid, from servo windows whose commands are all
+    small (at rest, ``|u|`` below any dead zone in range): there the motor sees
+    u − d·sign u only where |u| > d, a model no least squares takes (d is not a linear
+    parameter once some |u| is inside it), and the bang windows the least squares does take
+    hold |u| nearly constant, where d and α cannot be told apart. Each window's likelihood is
+    evaluated at every grid value with the servo's a and α as identified then (small drives:
+    their error is far below the encoder's), the initial angle and rate projected out. A
+    servo that stays put under |u| says d ≥ |u|; one that moves says how much got through."""
+
+    def __init__(self, grid_v: np.ndarray, noise_std_rad: float) -> None:
+        self.grid_v = np.asarray(grid_v, dtype=float)
+        self.log_likelihood = np.zeros_like(self.grid_v)
+        self.noise_var = noise_std_rad**2
+        self.windows = 0
+        self.rejected = 0
+
+    def add(
+        self, theta_rad: np.ndarray, command_v: np.ndarray, pole_per_s: float, alpha: float,
+        period_s: float,
+    ) -> bool:
+        """One window (θ at n + 1 samples, the n commands held between them); False (nothing
+        learnt) when no grid value explains it within the χ² test of the least squares (a tap
+        or a hard stop)."""
+        y, nuisance, _ = servo_window(theta_rad, command_v, period_s)
+        u = np.asarray(command_v, dtype=float)
+        d = self.grid_v[:, None]
+        through = np.where(np.abs(u) > d, u - d * np.sign(u), 0.0)  # (G, n)
+        driven = np.array([_double_integral_of_held(row, period_s) for row in through])
+        predicted = alpha * driven - pole_per_s * _integral_of_sampled(y, period_s)
+        basis = np.linalg.qr(nuisance)[0]
+        residual = y - predicted  # (G, n + 1)
+        residual = residual - (residual @ basis) @ basis.T
+        chi2 = np.sum(residual * residual, axis=1) / self.noise_var
+        dof = len(y) - nuisance.shape[1]
+        if float(chi2.min()) > dof + _OUTLIER_SIGMAS * math.sqrt(2.0 * dof):
+            self.rejected += 1
+            return False
+        self.log_likelihood -= 0.5 * chi2
+        self.windows += 1
+        return True
+
+    def posterior(self, mean_v: float, std_v: float) -> tuple[float, float]:
+        """Mean and standard deviation of d under a Gaussian prior (``mean_v``, ``std_v``)
+        times this likelihood, on the grid (d ≥ 0; the grid's step counted in)."""
+        log_p = self.log_likelihood - 0.5 * ((self.grid_v - mean_v) / std_v) ** 2
+        weights = np.exp(log_p - log_p.max())
+        weights /= weights.sum()
+        mean = float(weights @ self.grid_v)
+        step = float(self.grid_v[1] - self.grid_v[0])
+        variance = float(weights @ (self.grid_v - mean) ** 2) + step * step / 12.0
+        return mean, math.sqrt(variance)
+
+
 def ball_window(
     theta_rad: np.ndarray, position_m: np.ndarray, period_s: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -517,6 +571,7 @@ class Settings:
     servo_window: int = 40  # samples a servo window
     ball_window: int = 200  # samples a ball window
     identify_above_v: float = 0.5  # servo windows need every |u| above any dead zone in range
+    deadzone_grid_v: float = 0.005  # the grid of the dead zone's likelihood (windows of small |u|)
     identify_every: int = 100  # cycles between model updates
     replan_every: int = 10  # cycles between re-plans
     model_change: float = 0.01  # a relative change of the identified model that re-plans cold
@@ -943,6 +998,7 @@ class Identification:
     motor: WindowedLeastSquares
     ball: WindowedLeastSquares
     noise: NoiseEstimate
+    deadzone: DeadZoneLikelihood
     servo_from: int = 0
     ball_from: int = 0
     noise_from: int = 0
@@ -968,7 +1024,11 @@ class Identification:
             np.array([s.prior_gamma]), np.array([rel * abs(s.prior_gamma)]),
             noise.upper_m(s.confidence_z),
         )
-        return cls(motor, ball, noise)
+        deadzone = DeadZoneLikelihood(
+            np.arange(0.0, s.voltage_limit_v / 2, s.deadzone_grid_v),
+            s.encoder_step_rad / math.sqrt(12.0),
+        )
+        return cls(motor, ball, noise, deadzone)
 
     @property
     def first_needed(self) -> int:
@@ -980,14 +1040,40 @@ class Identification:
         return self.noise.upper_m(s.confidence_z)
 
     def identified(self, s: Settings) -> Identified:
-        a, alpha, c = self.motor.mean
+        mean, covariance = self.motor_estimate()
+        a, alpha, c = mean
         return Identified(
             pole_per_s=float(max(a, 1.0)),
             alpha=float(max(alpha, 1.0)),
             deadzone_v=float(min(max(c / alpha, 0.0), s.voltage_limit_v / 2)),
             gamma=float(self.ball.mean[0]),
-            covariance_motor=self.motor.covariance,
+            covariance_motor=covariance,
             gamma_std=math.sqrt(float(self.ball.covariance[0, 0])),
+        )
+
+    def motor_estimate(self) -> tuple[np.ndarray, np.ndarray]:
+        """The motor's (a, α, c) mean and covariance: the least squares', with what the rest
+        windows say of d folded in. The grid's posterior of d (the least squares' marginal of
+        d as its prior) is made the joint's marginal of c = α·d by a Gaussian update with the
+        observation of c that has exactly that effect (so a, α move with c as they
+        correlate)."""
+        mean, covariance = self.motor.mean, self.motor.covariance
+        if not self.deadzone.windows:
+            return mean, covariance
+        alpha = max(float(mean[1]), 1.0)
+        prior_var = float(covariance[2, 2])
+        d_mean, d_std = self.deadzone.posterior(
+            float(mean[2]) / alpha, math.sqrt(prior_var) / alpha
+        )
+        post_mean, post_var = alpha * d_mean, (alpha * d_std) ** 2
+        if not post_var < prior_var:
+            return mean, covariance
+        observed_var = 1.0 / (1.0 / post_var - 1.0 / prior_var)
+        observed = observed_var * (post_mean / post_var - float(mean[2]) / prior_var)
+        gain = covariance[:, 2] / (prior_var + observed_var)
+        return (
+            mean + gain * (observed - float(mean[2])),
+            covariance - np.outer(gain, covariance[2, :]),
         )
 
     def learn(
@@ -1009,10 +1095,12 @@ class Identification:
             # servo windows: samples servo_from .. k − 1 with the commands between them
             if k - self.servo_from > s.servo_window:
                 commands = window(command_v, self.servo_from, k - 1)
+                angles = window(theta_rad, self.servo_from, k)
                 if np.all(np.abs(commands) >= s.identify_above_v):
-                    self.motor.add(*servo_window(
-                        window(theta_rad, self.servo_from, k), commands, s.period_s
-                    ))
+                    self.motor.add(*servo_window(angles, commands, s.period_s))
+                elif np.all(np.abs(commands) < s.identify_above_v):
+                    a, alpha, _ = self.motor.mean
+                    self.deadzone.add(angles, commands, float(a), float(alpha), s.period_s)
                 self.servo_from = k - 1
             if k - self.ball_from >= s.ball_window:
                 self.ball.add(*ball_window(
