@@ -17,10 +17,7 @@ with each re-design the identification's windows since the last, ``Identificatio
   The initial conditions of each window are nuisance parameters, projected out; the windows'
   information adds up, starting from a Gaussian prior (the design values, broad), so the
   estimate always has a covariance: the controller's margins are read from it. A window the
-  current estimate does not predict (a tap, a hard stop) is left out by a χ² test. The bang
-  windows hold |u| nearly constant, where d and α cannot be told apart; the windows of small
-  commands (at rest), where the motor sees u only past d, give d's likelihood on a grid
-  (``DeadZoneLikelihood``), folded into the motor's Gaussian as its marginal of c.
+  current estimate does not predict (a tap, a hard stop) is left out by a χ² test.
 * **Noise** (``NoiseEstimate``): the position sensor's noise is the bench's, not a datasheet's.
   Every 100 ms window of position samples is fitted by its own x0 + v0·t + ½b·t² + g∫∫θ (a
   model that explains the ball's motion, manoeuvres included); the residuals' squares and
@@ -655,12 +652,10 @@ def _design(identified: Identified, s: Settings, position_noise_m: float) -> _De
     Ad, Bd = discrete.Ad, discrete.Bd
     z = s.confidence_z
     U = s.voltage_limit_v
-    # The steady observer stands for the estimate's error (the tracker's reserve, the terminal
-    # set, the ramps): where the filter follows γ's error as a state, that error is not noise
     observer = design_observer(
         discrete,
         input_noise_v=math.hypot(identified.drive_std(U), s.unmodelled_drive_v),
-        ball_noise_m_s2=s.unmodelled_ball_m_s2 if s.estimate_gamma else math.hypot(
+        ball_noise_m_s2=math.hypot(
             identified.gamma_std * s.theta_limit_rad, s.unmodelled_ball_m_s2
         ),
         angle_noise_rad=s.encoder_step_rad / math.sqrt(12.0),
