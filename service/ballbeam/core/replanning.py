@@ -17,7 +17,10 @@ with each re-design the identification's windows since the last, ``Identificatio
   The initial conditions of each window are nuisance parameters, projected out; the windows'
   information adds up, starting from a Gaussian prior (the design values, broad), so the
   estimate always has a covariance: the controller's margins are read from it. A window the
-  current estimate does not predict (a tap, a hard stop) is left out by a χ² test.
+  current estimate does not predict (a tap, a hard stop) is left out by a χ² test. The bang
+  windows hold |u| nearly constant, where d and α cannot be told apart; the windows of small
+  commands (at rest), where the motor sees u only past d, give d's likelihood on a grid
+  (``DeadZoneLikelihood``), folded into the motor's Gaussian as its marginal of c.
 * **Noise** (``NoiseEstimate``): the position sensor's noise is the bench's, not a datasheet's.
   Every 100 ms window of position samples is fitted by its own x0 + v0·t + ½b·t² + g∫∫θ (a
   model that explains the ball's motion, manoeuvres included); the residuals' squares and
