@@ -217,10 +217,13 @@ class WindowedLeastSquares:
 
 
 def _double_integral_of_held(values: np.ndarray, period_s: float) -> np.ndarray:
-    """∫∫ of a zero-order-held sequence (n,) at the n + 1 sample times: exact."""
-    first = np.concatenate([[0.0], np.cumsum(values) * period_s])
-    increments = period_s * first[:-1] + 0.5 * period_s**2 * values
-    return np.concatenate([[0.0], np.cumsum(increments)])
+    """∫∫ of a zero-order-held sequence (n,) at the n + 1 sample times: exact. Rows (m, n)
+    are sequences of their own: (m, n + 1)."""
+    values = np.asarray(values, dtype=float)
+    zero = np.zeros((*values.shape[:-1], 1))
+    first = np.concatenate([zero, np.cumsum(values, axis=-1) * period_s], axis=-1)
+    increments = period_s * first[..., :-1] + 0.5 * period_s**2 * values
+    return np.concatenate([zero, np.cumsum(increments, axis=-1)], axis=-1)
 
 
 def _integral_of_sampled(values: np.ndarray, period_s: float) -> np.ndarray:
@@ -273,7 +276,7 @@ class DeadZoneLikelihood:
         u = np.asarray(command_v, dtype=float)
         d = self.grid_v[:, None]
         through = np.where(np.abs(u) > d, u - d * np.sign(u), 0.0)  # (G, n)
-        driven = np.array([_double_integral_of_held(row, period_s) for row in through])
+        driven = _double_integral_of_held(through, period_s)
         predicted = alpha * driven - pole_per_s * _integral_of_sampled(y, period_s)
         basis = np.linalg.qr(nuisance)[0]
         residual = y - predicted  # (G, n + 1)
