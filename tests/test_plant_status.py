@@ -181,6 +181,23 @@ def test_replay_of_a_log_recorded_before_the_topic_reports_the_counters_absent()
     assert table.returncode == 0 and "plant_status" in table.stdout
 
 
+def test_an_emulator_stopping_by_itself_is_waited_for_not_terminated() -> None:
+    """The launcher's stop of an emulator the run's end already stopped: a SIGTERM that meets a
+    Python process on its way out (its handlers gone) kills it (exit −15, as CI once saw); the
+    launcher waits for it first."""
+    import signal
+    import subprocess
+    import sys
+
+    from ballbeam.runtime.launcher import _stop
+
+    exiting = "import time; time.sleep(0.3)"  # no handler: SIGTERM's default kills it
+    process = subprocess.Popen([sys.executable, "-c", exiting], text=True)
+    assert _stop(process, own_exit_s=30.0) == 0
+    process = subprocess.Popen([sys.executable, "-c", exiting], text=True)
+    assert _stop(process) == -signal.SIGTERM
+
+
 @pytest.mark.bus
 def test_a_lockstep_run_logs_the_counters_the_emulator_reports_and_replay_agrees(
     tmp_path: Path,

@@ -128,7 +128,12 @@ def _stopped_daemon_errors(
         ) from None
 
 
-def _stop(process: subprocess.Popen[str]) -> int:
+def _stop(process: subprocess.Popen[str], own_exit_s: float = 0.0) -> int:
+    """The process's exit code: it stopped by itself within ``own_exit_s``, or on SIGTERM
+    within the grace, or it is killed."""
+    if own_exit_s > 0.0:
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            return process.wait(timeout=own_exit_s)
     if process.poll() is None:
         process.send_signal(signal.SIGTERM)
         try:
@@ -319,7 +324,10 @@ def _launch(
         _stop(daemon)
         _stop(emulator)
         raise
-    emulator_exit = _stop(emulator)
+    # A daemon whose run is recorded has told the emulator so (the peer link) and it stops by
+    # itself; a SIGTERM that met it exiting found Python's handlers already gone and killed it
+    own_exit_s = STOP_GRACE_S if daemon.returncode in RECORDED_RUN_CODES else 0.0
+    emulator_exit = _stop(emulator, own_exit_s)
     _, emulator_errors = emulator.communicate()
     if daemon.returncode not in RECORDED_RUN_CODES:
         how = f"exited with {daemon.returncode}"
