@@ -110,6 +110,8 @@ _C = np.array([[57.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 100.0]])
 _OUTLIER_SIGMAS = 6.0
 # ... the same tail, for the noise estimate's F-test
 _OUTLIER_TAIL = 0.5 * math.erfc(_OUTLIER_SIGMAS / math.sqrt(2.0))  # the normal's upper tail
+# The dead zone's likelihood grid step [V] (a few mV: far below what an encoder count tells)
+_DEADZONE_GRID_V = 0.005
 # Singular values below this fraction of the largest: columns that coincide (counted once).
 _RANK_TOLERANCE = 1e-9
 # The re-shaping solve (Gauss-Newton on exact Jacobians): its stopping test on residuals in
@@ -272,12 +274,13 @@ class DeadZoneLikelihood:
         """One window (θ at n + 1 samples, the n commands held between them); False (nothing
         learnt) when no grid value explains it within the χ² test of the least squares (a tap
         or a hard stop)."""
-        y, nuisance, _ = servo_window(theta_rad, command_v, period_s)
+        y, nuisance, regressors = servo_window(theta_rad, command_v, period_s)
         u = np.asarray(command_v, dtype=float)
         d = self.grid_v[:, None]
         through = np.where(np.abs(u) > d, u - d * np.sign(u), 0.0)  # (G, n)
         driven = _double_integral_of_held(through, period_s)
-        predicted = alpha * driven - pole_per_s * _integral_of_sampled(y, period_s)
+        # (the servo's own term, −a∫(θ − θ0), is the least squares' first regressor)
+        predicted = alpha * driven + pole_per_s * regressors[:, 0]
         basis = np.linalg.qr(nuisance)[0]
         residual = y - predicted  # (G, n + 1)
         residual = residual - (residual @ basis) @ basis.T
@@ -577,7 +580,6 @@ class Settings:
     servo_window: int = 40  # samples a servo window
     ball_window: int = 200  # samples a ball window
     identify_above_v: float = 0.5  # servo windows need every |u| above any dead zone in range
-    deadzone_grid_v: float = 0.005  # the grid of the dead zone's likelihood (windows of small |u|)
     identify_every: int = 100  # cycles between model updates
     replan_every: int = 10  # cycles between re-plans
     model_change: float = 0.01  # a relative change of the identified model that re-plans cold
@@ -1031,7 +1033,7 @@ class Identification:
             noise.upper_m(s.confidence_z),
         )
         deadzone = DeadZoneLikelihood(
-            np.arange(0.0, s.voltage_limit_v / 2, s.deadzone_grid_v),
+            np.arange(0.0, s.voltage_limit_v / 2, _DEADZONE_GRID_V),
             s.encoder_step_rad / math.sqrt(12.0),
         )
         return cls(motor, ball, noise, deadzone)
