@@ -422,7 +422,7 @@ def _coasting_replanner(estimate_gamma: bool, measured: int, coasted: int) -> tu
 
 @pytest.mark.parametrize("age", [1, 4, 17])
 def test_the_re_planning_filter_takes_a_late_sample_as_if_it_had_come_in_time(age: int) -> None:
-    """The Kalman filter on (θ, θ̇, ẋ, x, δγ): a sample of ``age`` cycles ago, whose cycle and
+    """The Kalman filter on (θ, θ̇, ẋ, x, δγ, q): a sample of ``age`` cycles ago, whose cycle and
     the ones since went on without a sample (the filter predicting only), leaves the state
     and covariance the filter would have had taking it in its own cycle and predicting on
     through the same drives; the identification's windows get it in place of the

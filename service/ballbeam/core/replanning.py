@@ -38,10 +38,12 @@ with each re-design the identification's windows since the last, ``Identificatio
   plan's own servo state and the estimated ball (the servo's small errors are the tracker's).
   A re-plan that adds arcs (a detour) is taken only when the ball is off by far more than the
   estimate's noise; a tap or a new target is far, and is planned from the state then.
-* **Estimate** (``estimate_gamma``): a Kalman filter on (θ, θ̇, ẋ, x, δγ), δγ the error of the
-  design's γ: the ball's acceleration error δγ·θ is followed as θ swings (a fixed-gain observer
-  lags it by 1–2.5 mm/s through a stroke), γ is learnt from every sample and handed to the
-  design. What the model leaves out of the ball's acceleration is taken in proportion to |θ|
+* **Estimate** (``estimate_gamma``): a Kalman filter on (θ, θ̇, ẋ, x, δγ, q), δγ the error of
+  the design's γ: the ball's acceleration error δγ·θ is followed as θ swings (a fixed-gain
+  observer lags it by 1–2.5 mm/s through a stroke), γ is learnt from every sample and handed to
+  the design. q is the encoder's rounding, which holds while the servo stays inside a count:
+  a still servo's angle is known to within its count, and the ball's creep says where in it.
+  What the model leaves out of the ball's acceleration is taken in proportion to |θ|
   (``ball_noise_with_angle``): at rest the estimate is as quiet as the encoder allows, and the
   terminal regulator needs no noise threshold.
   A jump of the ball's speed the model does not allow (a tap) is found by a CUSUM of the
@@ -112,6 +114,9 @@ _OUTLIER_SIGMAS = 6.0
 _OUTLIER_TAIL = 0.5 * math.erfc(_OUTLIER_SIGMAS / math.sqrt(2.0))  # the normal's upper tail
 # The dead zone's likelihood grid step [V] (a few mV: far below what an encoder count tells)
 _DEADZONE_GRID_V = 0.005
+# The encoder's reading beyond its rounding (the filter's state q) taken as white noise of
+# this fraction of the rounding's deviation: none in truth; keeps the update well posed.
+_ENCODER_WHITE_FRACTION = 0.1
 # Singular values below this fraction of the largest: columns that coincide (counted once).
 _RANK_TOLERANCE = 1e-9
 # The re-shaping solve (Gauss-Newton on exact Jacobians): its stopping test on residuals in
@@ -122,8 +127,8 @@ _RESHAPE_ITERATIONS = 8
 # standard deviations of the position innovation.
 _JUMP_DRIFT = 1.5
 _JUMP_THRESHOLD = 12.0
-# The filter's steps kept to run again after a jump, and how many more than the detector's
-# count it goes back (the sum leaves zero some samples after the jump).
+# The filter's steps kept to run again after a jump, and how many samples before the
+# detector's sum left zero the jump may have come (the sum leaves zero after it).
 _JUMP_LOOKBACK = 200
 _JUMP_LOOKBACK_MARGIN = 10
 
@@ -604,7 +609,7 @@ class Settings:
     reshape: bool = False  # re-plans without a root re-shape the remaining arcs' inputs
     headroom_v: float = 0.3  # the plan's drive kept for re-shaping
     reshape_sigmas: float = 0.0  # ... when the ball is off the plan by more than this many σ
-    # γ's error a state of the estimator (a Kalman filter on (θ, θ̇, ẋ, x, δγ)) rather than
+    # γ's error a state of the estimator (a Kalman filter on (θ, θ̇, ẋ, x, δγ, q)) rather than
     # process noise of a fixed-gain observer: the ball's acceleration error γ̃·θ is followed
     # as θ swings, and γ is learnt from every sample
     estimate_gamma: bool = True
@@ -735,7 +740,7 @@ def _design(identified: Identified, s: Settings, position_noise_m: float) -> _De
         ),
         ball_process_noise=process_noise_covariance(discrete, 0.0, 1.0),
         measurement_noise=measurement_noise_covariance(
-            _C, s.encoder_step_rad / math.sqrt(12.0), position_noise_m
+            _C, _ENCODER_WHITE_FRACTION * s.encoder_step_rad / math.sqrt(12.0), position_noise_m
         ),
         drive_max_v=drive_max,
         ramp_v=ramp,
@@ -780,8 +785,8 @@ def _dot4(a: Vec, b: Vec) -> float:
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2] + a[3] * b[3]
 
 
-def _dot5(a: Vec, b: Vec) -> float:
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2] + a[3] * b[3] + a[4] * b[4]
+def _dot6(a: Vec, b: Vec) -> float:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2] + a[3] * b[3] + a[4] * b[4] + a[5] * b[5]
 
 
 def _quadratic4(m: Mat, e: Vec) -> float:
@@ -802,9 +807,10 @@ class FilterRows:
     bd: Vec  # (4,)
     process_noise: Mat  # (4, 4)
     ball_process_noise: Mat  # (4, 4): of a unit held ball acceleration
-    measurement_noise: Mat  # (2, 2): of (57 θ, 100 x)
+    measurement_noise: Mat  # (2, 2): of (57 θ, 100 x), beyond the encoder's count
     angle_gain: float  # the measurement's rows: (angle_gain·θ, position_gain·x)
     position_gain: float
+    encoder_step_rad: float
 
 
 def filter_step(
@@ -816,62 +822,79 @@ def filter_step(
     ball_noise_var: float,
 ) -> tuple[Vec, Mat, tuple[float, float] | None]:
     """One Kalman step (predict with the drive held over the period, then correct with the
-    measurement ``measured`` = (angle_gain·θ, position_gain·x)) on (θ, θ̇, ẋ, x, δγ), where
-    ẍ = (γ̂ + δγ)·θ and δγ is constant; ``ball_noise_var`` scales the ball's process noise.
-    Returns the state (5,), its covariance (5, 5) and the position's innovation with its
-    predicted standard deviation [m]; with no measurement (a period without its sample) the
-    prediction, its covariance and no innovation."""
+    measurement ``measured`` = (angle_gain·(θ + q), position_gain·x)) on (θ, θ̇, ẋ, x, δγ, q),
+    where ẍ = (γ̂ + δγ)·θ, δγ is constant and q is the encoder's rounding error. q is the
+    count's whole uncertainty (variance step²/12) and is not white: it holds while the servo
+    stays inside its count and is new once the servo has swept one, so it decays at
+    ρ = exp(−|θ̇| h / step). A still servo's angle is then known only to within its count,
+    and the ball's slow creep from that unmeasured fraction tells where in the count it is
+    (a white rounding error would average to certainty, and the creep would bias the
+    position's innovations until the jump detector took it for a tap).
+    ``ball_noise_var`` scales the ball's process noise. Returns the state (6,), its
+    covariance (6, 6) and the position's innovation with its predicted standard deviation
+    [m]; with no measurement (a period without its sample) the prediction, its covariance
+    and no innovation."""
     h = rows.period_s
     theta, rate = state[0], state[1]
+    step_rad = rows.encoder_step_rad
+    rho = math.exp(-abs(rate) * h / step_rad)
     a = rows.Ad
     # δγ·∫θ and δγ·∫∫θ over the step, θ moving at its rate (a fast stroke moves θ by a
     # percent of itself in one step)
     F = (
-        (*a[0], 0.0),
-        (*a[1], 0.0),
-        (*a[2], h * (theta + 0.5 * rate * h)),
-        (*a[3], 0.5 * h * h * (theta + rate * h / 3.0)),
-        (0.0, 0.0, 0.0, 0.0, 1.0),
+        (*a[0], 0.0, 0.0),
+        (*a[1], 0.0, 0.0),
+        (*a[2], h * (theta + 0.5 * rate * h), 0.0),
+        (*a[3], 0.5 * h * h * (theta + rate * h / 3.0), 0.0),
+        (0.0, 0.0, 0.0, 0.0, 1.0, 0.0),
+        (0.0, 0.0, 0.0, 0.0, 0.0, rho),
     )
     bd = rows.bd
-    prior = (*(_dot5(F[i], state) + bd[i] * drive_v for i in range(4)), state[4])
-    # F P Fᵀ + Q: P is symmetric (kept so), so P's rows are its columns; F's last row
-    # picks δγ, so F P's is P's; the product's upper triangle is mirrored
-    FP = (*(tuple(_dot5(row, column) for column in covariance) for row in F[:4]), covariance[4])
+    prior = (*(_dot6(F[i], state) + bd[i] * drive_v for i in range(4)), state[4], rho * state[5])
+    # F P Fᵀ + Q: P is symmetric (kept so), so P's rows are its columns; F's last rows pick
+    # δγ and ρ q, so F P's are P's (the latter by ρ); the upper triangle is mirrored
+    FP = (
+        *(tuple(_dot6(row, column) for column in covariance) for row in F[:4]),
+        covariance[4],
+        tuple(rho * v for v in covariance[5]),
+    )
     q, qb = rows.process_noise, rows.ball_process_noise
+    rounding_var = (1.0 - rho * rho) * step_rad * step_rad / 12.0
     upper = [
         [
-            _dot5(FP[i], F[j]) + q[i][j] + ball_noise_var * qb[i][j] if j < 4 else FP[i][4]
-            for j in range(i, 5)
+            _dot6(FP[i], F[j]) + q[i][j] + ball_noise_var * qb[i][j] if j < 4
+            else FP[i][4] if j == 4
+            else rho * FP[i][5] + (rounding_var if i == 5 else 0.0)
+            for j in range(i, 6)
         ]
-        for i in range(5)
+        for i in range(6)
     ]
     P = tuple(
-        tuple(upper[i][j - i] if j >= i else upper[j][i - j] for j in range(5)) for i in range(5)
+        tuple(upper[i][j - i] if j >= i else upper[j][i - j] for j in range(6)) for i in range(6)
     )
     if measured is None:
         return prior, P, None
     ga, gp = rows.angle_gain, rows.position_gain
-    hp0 = tuple(ga * v for v in P[0])  # H P: H's rows pick θ and x
+    hp0 = tuple(ga * (u + v) for u, v in zip(P[0], P[5], strict=True))  # H P: θ + q, and x
     hp1 = tuple(gp * v for v in P[3])
     r = rows.measurement_noise
-    s00, s01 = hp0[0] * ga + r[0][0], hp0[3] * gp + r[0][1]
-    s10, s11 = hp1[0] * ga + r[1][0], hp1[3] * gp + r[1][1]
+    s00, s01 = (hp0[0] + hp0[5]) * ga + r[0][0], hp0[3] * gp + r[0][1]
+    s10, s11 = (hp1[0] + hp1[5]) * ga + r[1][0], hp1[3] * gp + r[1][1]
     det = s00 * s11 - s01 * s10
     # the gain (S⁻¹ H P)ᵀ, S (2, 2) inverted in closed form
     gain = tuple(
         ((s11 * hp0[i] - s01 * hp1[i]) / det, (s00 * hp1[i] - s10 * hp0[i]) / det)
-        for i in range(5)
+        for i in range(6)
     )
-    r0 = measured[0] - ga * prior[0]
+    r0 = measured[0] - ga * (prior[0] + prior[5])
     r1 = measured[1] - gp * prior[3]
-    new_state = tuple(prior[i] + (gain[i][0] * r0 + gain[i][1] * r1) for i in range(5))
+    new_state = tuple(prior[i] + (gain[i][0] * r0 + gain[i][1] * r1) for i in range(6))
     # P − G H P, symmetrised: ½ of it and its transpose, entry by entry
-    updated = [[0.0] * 5 for _ in range(5)]
-    for i in range(5):
+    updated = [[0.0] * 6 for _ in range(6)]
+    for i in range(6):
         gi0, gi1 = gain[i]
         row = P[i]
-        for j in range(i, 5):
+        for j in range(i, 6):
             gj0, gj1 = gain[j]
             value = 0.5 * (
                 (row[j] - (gi0 * hp0[j] + gi1 * hp1[j])) + (P[j][i] - (gj0 * hp0[i] + gj1 * hp1[i]))
@@ -955,6 +978,7 @@ class _CycleRows:
                 ball_process_noise=_mat(d.ball_process_noise),
                 measurement_noise=_mat(d.measurement_noise),
                 angle_gain=float(_C[0, THETA]), position_gain=float(_C[1, BALL_POSITION]),
+                encoder_step_rad=s.encoder_step_rad,
             ),
             L=_mat(d.L), K=_vec(d.K), K_terminal=K_terminal,
             P_terminal=P_terminal, estimate_covariance=covariance,
@@ -1478,7 +1502,8 @@ class ReplanningController:
     _command: list[float] = field(init=False, default_factory=list)
     _samples_from: int = field(init=False, default=0)
     _gamma_error: float = field(init=False, default=0.0)  # the filter's δγ (estimate_gamma)
-    # the filter's covariance of (θ, θ̇, ẋ, x, δγ), rows of floats (estimate_gamma)
+    _rounding_rad: float = field(init=False, default=0.0)  # ... and its encoder rounding q
+    # the filter's covariance of (θ, θ̇, ẋ, x, δγ, q), rows of floats (estimate_gamma)
     _covariance: Mat = field(init=False, default=())
     _cycle_rows: _CycleRows | None = field(init=False, default=None)
     # Deferred planning (the law over a planner): a plan wanted is a request, answered later
@@ -1638,9 +1663,10 @@ class ReplanningController:
             self.estimate = np.array(
                 [theta_rad, self.initial_state[1], self.initial_state[2], position_m]
             )
-            self._covariance = _mat(
-                scipy.linalg.block_diag(d.estimate_covariance, d.identified.gamma_std**2)
-            )
+            self._covariance = _mat(scipy.linalg.block_diag(
+                d.estimate_covariance, d.identified.gamma_std**2,
+                self.settings.encoder_step_rad**2 / 12.0,
+            ))
         else:
             self._estimate(theta_rad, position_m)
         self._observed(theta_rad, position_m)
@@ -1692,26 +1718,28 @@ class ReplanningController:
         self.cycle += 1
 
     def _filter(self, y: tuple[float, float] | None) -> None:
-        """One Kalman step on (θ, θ̇, ẋ, x, δγ): ẍ = (γ̂ + δγ)·θ, δγ constant."""
+        """One Kalman step on (θ, θ̇, ẋ, x, δγ, q): ẍ = (γ̂ + δγ)·θ, δγ constant, q the
+        encoder's rounding (``filter_step``)."""
         s = self.settings
         ball_noise_var = 0.0
         if s.ball_noise_with_angle:
             # what the model leaves out of the ball's acceleration is a fraction of γθ (the
-            # nonlinear ball, a gain): at θ = 0 only the servo's unmeasured fraction of an
-            # encoder count is left
-            ball_noise = math.hypot(
-                s.unmodelled_ball_m_s2 * float(self.estimate[THETA]) / s.theta_limit_rad,
-                abs(self.design.identified.gamma) * s.encoder_step_rad / math.sqrt(12.0),
-            )
-            ball_noise_var = ball_noise**2
+            # nonlinear ball, a gain); at θ = 0 the servo's unmeasured fraction of a count is
+            # the filter's rounding state, not noise
+            ball_noise_var = (
+                s.unmodelled_ball_m_s2 * float(self.estimate[THETA]) / s.theta_limit_rad
+            ) ** 2
         step = _FilterInput(
-            (*self.estimate.tolist(), self._gamma_error), self._covariance, self._rows().filter,
+            (*self.estimate.tolist(), self._gamma_error, self._rounding_rad), self._covariance,
+            self._rows().filter,
             self._last_drive_v, y, ball_noise_var,
         )
         self._recent.append(step)
         state, covariance, innovation = step.run()
         self._take_filtered(state, covariance)
-        if innovation is None:
+        # the detector counts in deviations of the noise: until a window has measured it,
+        # the prior's σ may be off by the whole range and its sums tell nothing
+        if innovation is None or not self.identification.noise.windows:
             return
         jump = self._jumps.step(*innovation, s.period_s)
         if jump is not None:
@@ -1760,16 +1788,26 @@ class ReplanningController:
         )
 
     def _admit_jump(self, speed_m_s: float, samples: int) -> None:
-        """The ball's speed jumped (a tap) about ``samples`` ago, by at most ``speed_m_s``:
-        the filter runs again over the samples since, from its state before them with the
-        speed's variance grown by that much, so that those samples, not the model, say how
-        fast the ball goes now (at rest the model is trusted so much that a tap would take
-        the filter a second to believe, and its γ error would take the blame meanwhile)."""
+        """The ball's speed jumped (a tap) by at most ``speed_m_s``, a little before the
+        detector's sum left zero ``samples`` ago: the filter runs again over the samples
+        since, from its state there with the speed's variance grown by that much and the
+        position's by what the jump built before (τ·jump, τ up to ``_JUMP_LOOKBACK_MARGIN``
+        samples), so that those samples, not the model, say how fast the ball goes now (at
+        rest the model is trusted so much that a tap would take the filter a second to
+        believe, and its γ error would take the blame meanwhile). Not from before the jump:
+        the samples before it would pull the speed back towards the old one."""
         self.jumps += 1
-        start = max(0, len(self._recent) - samples - _JUMP_LOOKBACK_MARGIN)
+        start = max(0, len(self._recent) - samples)
         first = self._recent[start]
+        # the jump came up to the margin's samples before the sum left zero, τ earlier
+        # (uniform): the state there is off by the jump in speed and by τ·jump in position
+        tau_max_s = _JUMP_LOOKBACK_MARGIN * self.settings.period_s
+        v2 = speed_m_s * speed_m_s
         grown = [list(row) for row in first.covariance]
-        grown[2][2] += speed_m_s * speed_m_s
+        grown[2][2] += v2
+        grown[2][3] += v2 * tau_max_s / 2.0
+        grown[3][2] += v2 * tau_max_s / 2.0
+        grown[3][3] += v2 * tau_max_s * tau_max_s / 3.0
         self._run_again(start, first.state, tuple(tuple(row) for row in grown))
 
     def _run_again(self, start: int, state: Vec, covariance: Mat) -> None:
@@ -1787,7 +1825,7 @@ class ReplanningController:
         """The filter's result as the estimate (with the γ filter: its δγ and covariance)."""
         if self.settings.estimate_gamma:
             self.estimate = np.array(state[:4])
-            self._gamma_error = state[4]
+            self._gamma_error, self._rounding_rad = state[4], state[5]
             self._covariance = covariance
         else:
             self.estimate = np.array(state)
@@ -1959,11 +1997,17 @@ class ReplanningController:
 
     def _ramp_v(self) -> float:
         """Twice the σ of the terminal drive the estimate's error carries: from the design's
-        steady observer, or the filter's running covariance (``ball_noise_with_angle``)."""
+        steady observer, or the filter's running covariance (``ball_noise_with_angle``), the
+        encoder's rounding given: that share of the error moves only as the servo crosses a
+        count, so the compensation cannot chatter on it (counted, a sine's small drives went
+        under-compensated)."""
         d = self.design
         if not (self.settings.estimate_gamma and self.settings.ball_noise_with_angle):
             return d.ramp_v
-        P = tuple(row[:4] for row in self._covariance[:4])
+        C = self._covariance
+        P = tuple(
+            tuple(C[i][j] - C[i][5] * C[5][j] / C[5][5] for j in range(4)) for i in range(4)
+        )
         return 2.0 * math.sqrt(_quadratic4(P, self._rows().K_terminal))
 
     def _compensate(self, drive_v: float) -> float:
