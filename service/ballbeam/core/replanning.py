@@ -2004,11 +2004,12 @@ class ReplanningController:
         d = self.design
         if not (self.settings.estimate_gamma and self.settings.ball_noise_with_angle):
             return d.ramp_v
-        C = self._covariance
-        P = tuple(
-            tuple(C[i][j] - C[i][5] * C[5][j] / C[5][5] for j in range(4)) for i in range(4)
-        )
-        return 2.0 * math.sqrt(_quadratic4(P, self._rows().K_terminal))
+        C, K = self._covariance, self._rows().K_terminal
+        # Kᵀ (P − c cᵀ / P_qq) K, c the state's covariance with q
+        with_rounding = _dot4(K, tuple(row[5] for row in C[:4]))
+        return 2.0 * math.sqrt(max(
+            _quadratic4(tuple(row[:4] for row in C[:4]), K) - with_rounding**2 / C[5][5], 0.0
+        ))
 
     def _compensate(self, drive_v: float) -> float:
         d = self.design
