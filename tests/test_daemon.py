@@ -305,6 +305,45 @@ def test_the_whole_daemon_in_process_runs_like_the_offline_loop(tmp_path: Path) 
     assert summary["max_abs_theta_deg"] <= config.limits.theta_deg
 
 
+def test_a_samples_records_wait_until_its_command_is_on_the_bus(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Between a sample and its command the daemon only computes: the sample's frame, its
+    sensor record and its truth are encoded after the command has gone out (RunRecording's
+    hold), in the order they were written, and none is lost."""
+    events: list[tuple[str, int]] = []  # (what, its cycle or log time)
+    send_bytes, record = CommandOut._send_bytes, Recorder.record
+
+    def sending(self, data, log_time_ns, cycle, extension=b""):  # type: ignore[no-untyped-def]
+        events.append(("command", cycle))
+        send_bytes(self, data, log_time_ns, cycle, extension)
+
+    def recording_(self, handle, log_time_ns, values):  # type: ignore[no-untyped-def]
+        if handle.topic in ("/sensor", "/truth") or (
+            handle.topic == "/can/rx" and values[1] == SENSOR_ID  # not the plant's status
+        ):
+            events.append((handle.topic, log_time_ns))
+        record(self, handle, log_time_ns, values)
+
+    monkeypatch.setattr(CommandOut, "_send_bytes", sending)
+    monkeypatch.setattr(Recorder, "record", recording_)
+    config = virtual_config(0.3, "run.mode='lockstep'")
+    assert run_in_process(config, tmp_path / "run.mcap") == "completed"
+    period_ns = round(config.controller.period_s * 1e9)
+    commands = [i for i, (kind, _) in enumerate(events) if kind == "command"]
+    assert len(commands) >= 300
+    origin_ns = next(t for kind, t in events if kind == "/sensor")  # cycle 0's log time
+    for kind in ("/can/rx", "/truth", "/sensor"):
+        at = [(i, (t - origin_ns) // period_ns) for i, (k, t) in enumerate(events) if k == kind]
+        assert [cycle for _, cycle in at] == list(range(300)), kind
+        # cycle k's records come after cycle k's command, before cycle k + 1's (the first
+        # sample is read before the loop starts: no command waits for it)
+        assert all(commands[cycle] < i < commands[cycle + 1] for i, cycle in at[1:]), kind
+    run_log = read_log(tmp_path / "run.mcap")
+    assert len(run_log.topics["/sensor"].values["cycle"]) == 300
+    assert replay.verify(run_log).ok
+
+
 def test_after_a_watchdog_trip_the_plant_obeys_a_restarted_daemon_at_once() -> None:
     """A restarted daemon counts its commands from 0 again; the old stream had reached 40.
     Without a reset at the trip, its frames looked stale for up to 128 periods (42–120 ms of

@@ -12,6 +12,7 @@ the kernel would write one).
 from __future__ import annotations
 
 import contextlib
+import hmac
 import json
 import os
 import resource
@@ -155,11 +156,19 @@ def test_the_run_key_is_overwritten_in_place_when_wiped() -> None:
     sender = FrameAuthenticator(key)
     frame = sender.protect(0x101, bytes(8))
     assert FrameAuthenticator(original).verify(0x101, frame) == "ok"  # the key in use is it
+    # HMAC-SHA256(key, id ‖ freshness ‖ payload), truncated: the stdlib's one-shot agrees
+    assert frame[16:] == hmac.digest(
+        original, (0x101).to_bytes(4, "little") + frame[8:16] + frame[:8], "sha256"
+    )[:8]
+    sharing = FrameAuthenticator(key)  # the other end of one process: keyed, then wiped
+    assert sharing.verify(0x101, frame) == "ok"
     assert original not in repr(key).encode() and original.hex() not in repr(key)
     sender.wipe()
     assert key.wiped and buffer == bytearray(SECRET_BYTES)  # the very object, all zeros
     with pytest.raises(ValueError, match="wiped"):
         sender.protect(0x101, bytes(8))
+    with pytest.raises(ValueError, match="wiped"):
+        sharing.authentic(0x101, frame)  # its keyed MAC went with the key
 
 
 def test_a_key_read_from_its_pipe_lands_in_the_buffer_that_is_wiped() -> None:

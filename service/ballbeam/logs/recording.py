@@ -2,11 +2,16 @@
 
 The daemon records through this, never through raw tuples: each topic takes its own record
 type (``logs/topics.py``), whose fields are the topic's layout.
+
+Between a sensor frame and the command it answers the daemon *holds* the recording
+(:meth:`RunRecording.hold`): records are kept as given and encoded at :meth:`release`, once
+the command is on the bus, so that recording adds nothing to the loop's turnaround.
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING, Any
 
 from ballbeam.logs.plan_record import PLAN_SCHEMA, PLANS, plan_message
 from ballbeam.logs.recorder import ChannelHandle, Recorder, encode_json
@@ -43,9 +48,32 @@ class RunRecording:
         )
         if plans:
             self._handles[PLANS] = recorder.add_json_channel(PLANS, "ballbeam/Plan", PLAN_SCHEMA)
+        self._held: list[tuple[ChannelHandle, int, Any]] | None = None  # (channel, time, record)
+
+    def hold(self) -> None:
+        """Keep what is written from now on, in order, until :meth:`release` (records are
+        immutable tuples, notes fresh mappings: kept as they are, encoded then)."""
+        if self._held is None:
+            self._held = []
+
+    def release(self) -> None:
+        """Encode what was held (in the order it was written) and write through again."""
+        held, self._held = self._held, None
+        if held:
+            record = self.recorder.record
+            for handle, log_time_ns, values in held:
+                record(handle, log_time_ns, values)
+
+    def _record(
+        self, handle: ChannelHandle, log_time_ns: int, values: Sequence[Any] | Mapping[str, Any]
+    ) -> None:
+        if self._held is not None:
+            self._held.append((handle, log_time_ns, values))
+        else:
+            self.recorder.record(handle, log_time_ns, values)
 
     def write(self, topic: StructTopic[R], log_time_ns: int, record: R) -> None:
-        self.recorder.record(self._handles[topic.name], log_time_ns, record)
+        self._record(self._handles[topic.name], log_time_ns, record)
 
     def event(self, log_time_ns: int, cycle: int, kind: str, detail: str) -> None:
         self._note(EVENTS, log_time_ns, cycle, kind, detail)
@@ -57,7 +85,7 @@ class RunRecording:
         self, log_time_ns: int, cycle: int, time_s: float, plant_step: int, change_m_s: float
     ) -> None:
         """A tap on the ball at plant time ``time_s`` (physics step ``plant_step``)."""
-        self.recorder.record(self._handles[DISTURBANCES], log_time_ns, {
+        self._record(self._handles[DISTURBANCES], log_time_ns, {
             "cycle": cycle, "time_s": time_s, "plant_step": plant_step,
             "ball_velocity_change_m_s": change_m_s,
         })
@@ -70,14 +98,14 @@ class RunRecording:
         ``made_json``: a design's encoding, made where it was solved: writing one here
         takes milliseconds of the cycle)."""
         if made_json is None or not taken.design:
-            self.recorder.record(self._handles[PLANS], log_time_ns, plan_message(taken, wait_ns))
+            self._record(self._handles[PLANS], log_time_ns, plan_message(taken, wait_ns))
             return
         text = encode_json(plan_message(taken, wait_ns, made=False))
-        self.recorder.record(
+        self._record(
             self._handles[PLANS], log_time_ns, text[:-1] + b',"made":' + made_json + b"}"
         )
 
     def _note(self, topic: str, log_time_ns: int, cycle: int, kind: str, detail: str) -> None:
-        self.recorder.record(
+        self._record(
             self._handles[topic], log_time_ns, {"cycle": cycle, "kind": kind, "detail": detail}
         )

@@ -63,9 +63,11 @@ class RunKey:
 
     What a wipe reaches, and what it cannot: the key lives only in this ``bytearray`` (read
     into it from the pipe or the OS, never through a ``bytes`` object, which is immutable and
-    whose memory is freed unwiped). Each MAC is ``hmac.digest`` over this buffer: CPython hands
-    it to OpenSSL's one-shot HMAC, whose context (key pads included) OpenSSL cleanses when it
-    frees it; the pure-Python fallback, used only without OpenSSL, makes ``bytes`` copies of
+    whose memory is freed unwiped). An authenticator keys one HMAC context from this buffer
+    (``hmac.new``, which CPython hands to OpenSSL) and copies it for each MAC (half the cost
+    of keying one per frame); OpenSSL cleanses a context (key pads included) when it frees
+    it, the keyed one when the authenticator drops it (at its wipe, or once the key is seen
+    wiped). The pure-Python fallback, used only without OpenSSL, makes ``bytes`` copies of
     the padded key that no one can wipe. A key given as ``bytes`` (tests, benchmarks) is
     copied in, and the caller's object stays as it was. Nothing here keeps the pages out of
     swap (no ``mlock``): the nodes forbid core dumps instead (``runtime/process.py``).
@@ -120,13 +122,14 @@ class RunKey:
 class FrameAuthenticator:
     """Protects outgoing frames and judges incoming ones for one node of one run."""
 
-    __slots__ = ("_echoed", "_key", "_last_accepted", "_last_sent", "_sent", "_sent_frames",
-                 "window_ns")
+    __slots__ = ("_echoed", "_key", "_keyed", "_last_accepted", "_last_sent", "_sent",
+                 "_sent_frames", "window_ns")
 
     def __init__(self, secret: RunKey | bytes, window_ns: int = DEFAULT_WINDOW_NS) -> None:
         """``secret``: the run's key (shared, not copied: wiping it ends this authenticator
         too), or its 32 bytes (copied into a key of its own)."""
         self._key = secret if isinstance(secret, RunKey) else RunKey(bytearray(secret))
+        self._keyed: hmac.HMAC | None = None  # made at the first MAC (RunKey's docstring)
         self.window_ns = window_ns
         self._last_sent = 0
         self._last_accepted: dict[int, int] = {}
@@ -138,11 +141,16 @@ class FrameAuthenticator:
         self._echoed: set[tuple[int, int]] = set()
 
     def _mac(self, arbitration_id: int, freshness: bytes, payload: bytes) -> bytes:
-        message = arbitration_id.to_bytes(4, "little") + freshness + payload
-        return hmac.digest(self._key.material, message, hashlib.sha256)[:MAC_BYTES]
+        if self._keyed is None or self._key.wiped:
+            self._keyed = None
+            self._keyed = hmac.new(self._key.material, digestmod=hashlib.sha256)  # wiped: raises
+        mac = self._keyed.copy()
+        mac.update(arbitration_id.to_bytes(4, "little") + freshness + payload)
+        return mac.digest()[:MAC_BYTES]
 
     def wipe(self) -> None:
         """Overwrite the key (the run is over): no frame can be protected or judged after."""
+        self._keyed = None
         self._key.wipe()
 
     def protect(self, arbitration_id: int, payload: bytes, extension: bytes = b"") -> bytes:

@@ -347,6 +347,7 @@ class ControllerDaemon:
             self._stats.measured_cycles += 1
         self._command(cycle, output.voltage_v, output.requested_v, enable=True,
                       lookahead_v=self.lookahead_v)
+        self.recording.release()  # the command is out: what waited is recorded now
         at_ns = self.log_time_ns
         self.recording.write(ESTIMATE, at_ns, EstimateRecord(cycle, *output.estimate))
         self.recording.write(
@@ -609,6 +610,7 @@ class ControllerDaemon:
                 start_ns = time.monotonic_ns()
                 self.log_time_ns = self.wall_origin_ns + self.law.cycle * self.period_ns
                 self._cycle()
+                self.recording.release()
                 self._record_timing(start_ns, start_ns, 0)
                 continue
             message = self._recv(silence_s, poll_s)
@@ -619,7 +621,12 @@ class ControllerDaemon:
                 self._stats.end_reason = "plant_silent"
                 log.error("plant silent for %.1f s in lock-step: stopping", silence_s)
                 return
+            # A sample's records wait for its command (RunRecording.hold); anything else is
+            # recorded at once.
+            self.recording.hold()
             self._handle(message)
+            if not self.intake.fresh:
+                self.recording.release()
 
     def _sensor_phase_ns(self, first_arrival_ns: int) -> int:
         """Where in our period the plant's sensor frames land (monotonic ns mod period),
@@ -678,6 +685,7 @@ class ControllerDaemon:
                 tick.deadline_ns + self.period_ns - work.reserve_ns,
             )
             drain_until_ns = min(tick.start_ns + self.period_ns // 2, catch_up_until_ns)
+            self.recording.hold()  # until the cycle's command is out
             while (message := self._recv(0.0)) is not None:
                 self._handle(message)
                 if (now_ns := time.monotonic_ns()) >= drain_until_ns and (
@@ -701,6 +709,7 @@ class ControllerDaemon:
             # from /timing: the same sum of its lateness and skipped periods).
             work_start_ns = time.monotonic_ns()
             self._cycle(tick.lateness_ns + tick.skipped * self.period_ns)
+            self.recording.release()
             self._record_timing(tick.deadline_ns, tick.start_ns, tick.skipped)
             work.took(time.monotonic_ns() - work_start_ns)
 
@@ -740,6 +749,7 @@ class ControllerDaemon:
 
     def _shutdown(self) -> None:
         """0 V, disabled — sent a few times since a frame can be lost — then the stop event."""
+        self.recording.release()
         self.commands.shutdown(self.log_time_ns, self.law.cycle)
         if self.run_over_fd is not None and signal_run_over(self.run_over_fd):
             self._await_final_status()
