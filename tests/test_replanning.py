@@ -236,6 +236,25 @@ def test_a_change_of_target_mid_run_is_planned_from_the_state_then() -> None:
     assert peak <= math.radians(52.0)
 
 
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_the_terminal_regulator_takes_over_at_the_plans_end_not_inside_its_last_brake(
+    seed: int,
+) -> None:
+    """The last stroke is a full-drive brake onto rest: it is tracked to its end. At the cycle
+    before the regulator's first, the plan's own state is that of its last period: within
+    one period of a brake of at most αU ≈ 500 rad/s² of rest, |θ̇| ≤ αU·h and |θ| ≤ αU·h²/2
+    (a period earlier it would be twice and four times that)."""
+    config = load_config(PAPER, [])
+    for overrides in ((), ("plant.motor_gain_scale=0.8",)):
+        run = run_closed_loop(plant(*overrides), config.initial.state(), 3.0, seed=seed)
+        first = int(np.argmax(run.terminal))
+        assert run.terminal[first] and not run.terminal[first - 1]
+        plan_state = run.reference[first - 1]
+        brake = 108.9 * 5.0  # rad/s², the nominal α at the full 5 V
+        assert abs(plan_state[0]) <= brake * PERIOD_S**2 / 2, (overrides, plan_state)
+        assert abs(plan_state[1]) <= brake * PERIOD_S, (overrides, plan_state)
+
+
 @pytest.mark.parametrize(("offset_m", "seed"), [(3e-4, 5), (-3e-4, 6), (2e-4, 7)])
 def test_a_start_inside_the_rest_band_settles_without_leaving_it(
     offset_m: float, seed: int

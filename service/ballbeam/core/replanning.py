@@ -53,9 +53,11 @@ with each re-design the identification's windows since the last, ``Identificatio
   same arcs has no root, the remaining arcs' inputs move within a headroom.
 * **Track**: drive = plan drive + K (plan state − estimate), K a discrete LQR of the identified
   model.
-* **Terminal regulator**: in the plan's last stroke, once the error is inside the terminal
-  LQR's invariant ellipse (the Lyapunov level set on which its drive stays within the limit),
-  the LQR takes over; it hands back to a fresh plan only if the state leaves a larger ellipse.
+* **Terminal regulator**: at the plan's end, if the error is inside the terminal LQR's
+  invariant ellipse (the Lyapunov level set on which its drive stays within the limit), the
+  LQR takes over (else a near plan to it); it hands back to a fresh plan only if the state
+  leaves a larger ellipse. The plan's last stroke is a full-drive brake onto rest: handed over
+  inside it, the gentler regulator left the brake half done and the servo coasted past level.
 * **A sine** (``sine``): the plan goes to rest where the sine will be when it ends; the
   terminal regulator then holds the state on the sine's flat state with its drive (θ = ẍ/γ,
   ...) wherever its drive stays unsaturated (that set, not the rest band's, is a sine's).
@@ -1913,16 +1915,12 @@ class ReplanningController:
         if not self.terminal and self.plan is not None:
             self._maybe_replan()
         plan = self.plan
-        if not self.terminal and plan is not None:
-            elapsed = self._elapsed()
-            edges = self._plan_sampler(plan).edges
-            last_stroke = elapsed >= edges[-2] if len(edges) >= 2 else True
-            if (last_stroke and self._in_terminal_set()) or elapsed >= plan.duration_s:
-                if self._in_terminal_set():
-                    self.terminal = True
-                else:  # outside the terminal set: a (small) minimum-time move to it
-                    self._plan_from_estimate(near=True)
-                    plan = self.plan
+        if not self.terminal and plan is not None and self._elapsed() >= plan.duration_s:
+            if self._in_terminal_set():
+                self.terminal = True
+            else:  # outside the terminal set: a (small) minimum-time move to it
+                self._plan_from_estimate(near=True)
+                plan = self.plan
         if self.terminal or (plan is None and self.sine is not None):
             # (a sine, its plan being solved: follow it meanwhile rather than drive nothing)
             drive = -_dot4(self._rows().K_terminal, self._error())
@@ -1965,7 +1963,7 @@ class ReplanningController:
         sampler = self._plan_sampler(plan)
         edges = sampler.edges
         if len(edges) >= 2 and elapsed >= edges[-2]:
-            return  # the last arc: the terminal regulator's, not a re-plan's
+            return  # the last arc: tracked to its end, where the terminal regulator takes over
         on_plan = sampler.at(elapsed)[0]
         est = self.estimate
         d = self.design
