@@ -36,7 +36,7 @@ from ballbeam.protocol.frames import (
 from ballbeam.protocol.secoc import FrameAuthenticator
 from ballbeam.runtime.daemon.command_out import CommandOut
 from ballbeam.runtime.daemon.intake import SensorIntake, SentCommands
-from ballbeam.runtime.daemon.loop import PERIOD_OFFSET_AGREEMENT
+from ballbeam.runtime.daemon.loop import PERIOD_OFFSET_AGREEMENT, ControllerDaemon
 from ballbeam.runtime.daemon.node import run_daemon
 from ballbeam.runtime.stop import StopFlag
 from ballbeam.runtime.ticker import Tick
@@ -342,6 +342,42 @@ def test_a_samples_records_wait_until_its_command_is_on_the_bus(
     run_log = read_log(tmp_path / "run.mcap")
     assert len(run_log.topics["/sensor"].values["cycle"]) == 300
     assert replay.verify(run_log).ok
+
+
+def test_what_waits_for_a_command_is_written_before_the_daemon_waits_for_its_planner(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Lock-step waits for each plan the re-planning law is due; a wait has no turnaround to
+    spare, so the sample's records held for the command are written before it (a held
+    record would miss the recorder's flushes for as long as the planner takes)."""
+    events: list[tuple[str, int]] = []
+    waiting, record = ControllerDaemon._take_in_while_waiting, Recorder.record
+
+    def wait(self):  # type: ignore[no-untyped-def]
+        waiting(self)  # (its first poll of the bus is at once: what it records comes first)
+        events.append(("wait", self.law.cycle))
+
+    def recording_(self, handle, log_time_ns, values):  # type: ignore[no-untyped-def]
+        if handle.topic == "/can/rx" and values[1] == SENSOR_ID:
+            events.append(("sample", log_time_ns))
+        record(self, handle, log_time_ns, values)
+
+    monkeypatch.setattr(ControllerDaemon, "_take_in_while_waiting", wait)
+    monkeypatch.setattr(Recorder, "record", recording_)
+    config = virtual_config(0.3, "run.mode='lockstep'", "controller.kind='replanning'")
+    assert run_in_process(config, tmp_path / "run.mcap") == "completed"
+    period_ns = round(config.controller.period_s * 1e9)
+    first = next(i for i, (kind, _) in enumerate(events) if kind == "sample")
+    origin_ns = events[first][1]  # cycle 0's log time
+    # (the first plan may be waited for before any sample: nothing is held then)
+    waits = [i for i, (kind, _) in enumerate(events) if kind == "wait" and i > first]
+    assert waits, "the law waited for no plan"
+    for i in waits:
+        # the sample of the cycle that waits was read before the wait: it is recorded
+        cycle = events[i][1]
+        assert any(kind == "sample" and (t - origin_ns) // period_ns == cycle
+                   for kind, t in events[:i]), (i, cycle)
+    assert replay.verify(read_log(tmp_path / "run.mcap")).ok
 
 
 def test_after_a_watchdog_trip_the_plant_obeys_a_restarted_daemon_at_once() -> None:

@@ -400,7 +400,9 @@ class ControllerDaemon:
         """Waiting on the planner: judge what the bus brought meanwhile while it is fresh (an
         authenticated frame is refused once it is older than the freshness window, and a
         slow solve can outlast it). The intake alone: a resent sample gets no command
-        before the cycle it is for."""
+        before the cycle it is for. What the recording held is written first: waiting, the
+        loop has no turnaround to spare it, and a held record misses the recorder's flushes."""
+        self.recording.release()
         for _ in range(TAKE_IN_WHILE_WAITING):  # bounded: a flood must not hold the wait
             message = self._recv(0.0)
             if message is None:
