@@ -250,7 +250,7 @@ def test_the_terminal_regulator_takes_over_at_the_plans_end_not_inside_its_last_
         first = int(np.argmax(run.terminal))
         assert run.terminal[first] and not run.terminal[first - 1]
         plan_state = run.reference[first - 1]
-        brake = 108.9 * 5.0  # rad/s², the nominal α at the full 5 V
+        brake = Settings().prior_alpha * Settings().voltage_limit_v  # rad/s², nominal α·U
         assert abs(plan_state[0]) <= brake * PERIOD_S**2 / 2, (overrides, plan_state)
         assert abs(plan_state[1]) <= brake * PERIOD_S, (overrides, plan_state)
 

@@ -141,8 +141,9 @@ class FrameAuthenticator:
         self._echoed: set[tuple[int, int]] = set()
 
     def _mac(self, arbitration_id: int, freshness: bytes, payload: bytes) -> bytes:
-        if self._keyed is None or self._key.wiped:
-            self._keyed = None
+        if self._key.wiped:
+            self._keyed = None  # the keyed context goes with the key
+        if self._keyed is None:
             self._keyed = hmac.new(self._key.material, digestmod=hashlib.sha256)  # wiped: raises
         mac = self._keyed.copy()
         mac.update(arbitration_id.to_bytes(4, "little") + freshness + payload)
