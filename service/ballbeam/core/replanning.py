@@ -1665,10 +1665,16 @@ class ReplanningController:
             self.estimate = np.array(
                 [theta_rad, self.initial_state[1], self.initial_state[2], position_m]
             )
-            self._covariance = _mat(scipy.linalg.block_diag(
+            initial = scipy.linalg.block_diag(
                 d.estimate_covariance, d.identified.gamma_std**2,
                 self.settings.encoder_step_rad**2 / 12.0,
-            ))
+            )
+            # the position is one sample's: its error is that sample's noise, not the steady
+            # filter's (which has averaged a run of them; so trusted, the first sample's
+            # error was blamed on γ and the ball's speed through the first strokes)
+            initial[BALL_POSITION, :] = initial[:, BALL_POSITION] = 0.0
+            initial[BALL_POSITION, BALL_POSITION] = self.position_noise_m**2
+            self._covariance = _mat(initial)
         else:
             self._estimate(theta_rad, position_m)
         self._observed(theta_rad, position_m)
@@ -1822,6 +1828,19 @@ class ReplanningController:
             recent[index] = step
             state, covariance, _ = step.run()
         self._take_filtered(state, covariance)
+
+    @property
+    def ball_gain(self) -> tuple[float, float]:
+        """The filter's γ [m/s² per rad] and its standard deviation (``estimate_gamma``)."""
+        return (
+            self.design.identified.gamma + self._gamma_error, math.sqrt(self._covariance[4][4])
+        )
+
+    @property
+    def estimate_std(self) -> np.ndarray:
+        """(4,) the standard deviations of the estimate's (θ, θ̇, ẋ, x) that the filter
+        states (``estimate_gamma``)."""
+        return np.sqrt([self._covariance[i][i] for i in range(4)])
 
     def _take_filtered(self, state: Vec, covariance: Mat) -> None:
         """The filter's result as the estimate (with the γ filter: its δγ and covariance)."""
