@@ -53,11 +53,15 @@ with each re-design the identification's windows since the last, ``Identificatio
   same arcs has no root, the remaining arcs' inputs move within a headroom.
 * **Track**: drive = plan drive + K (plan state − estimate), K a discrete LQR of the identified
   model.
-* **Terminal regulator**: at the plan's end, if the error is inside the terminal LQR's
-  invariant ellipse (the Lyapunov level set on which its drive stays within the limit), the
-  LQR takes over (else a near plan to it); it hands back to a fresh plan only if the state
-  leaves a larger ellipse. The plan's last stroke is a full-drive brake onto rest: handed over
-  inside it, the gentler regulator left the brake half done and the servo coasted past level.
+* **Terminal regulator**: at the plan's end, if the error is inside the terminal LQR's set
+  (``regulator_keeps``: the errors from which its closed loop keeps the ball in the rest band
+  and its drive within the limit, predicted until inside its invariant ellipse, the Lyapunov
+  level set on which both hold), the LQR takes over (else a near plan to it); it hands back to
+  a fresh plan only if the state leaves that set grown. The ellipse alone left out a ball at
+  rest inside the band but near its edge, and a minimum-time move to the target then swung
+  the servo across the band. The plan's last stroke is a full-drive brake onto rest: handed
+  over inside it, the gentler regulator left the brake half done and the servo coasted past
+  level.
 * **A sine** (``sine``): the plan goes to rest where the sine will be when it ends; the
   terminal regulator then holds the state on the sine's flat state with its drive (θ = ẍ/γ,
   ...) wherever its drive stays unsaturated (that set, not the rest band's, is a sine's).
@@ -955,6 +959,9 @@ class _CycleRows:
     # the largest level of the terminal LQR's Lyapunov function on which its drive stays
     # within the drive limit (a sine's terminal set)
     unsaturated_level: float
+    # the terminal LQR's closed loop over one period and over ``_STRIDE`` periods
+    closed_loop: Mat
+    closed_loop_stride: Mat
     # Inside the rest band (settling plans): the ball's band less z σ of its estimate, the
     # servo's limit (the band less the estimate's error: z σ, and half a count of bias in a
     # slowing servo, as at the angle limit) and the design's angle guard moved to that limit
@@ -972,6 +979,8 @@ class _CycleRows:
             s.rest_band_rad - 0.5 * s.encoder_step_rad - z * math.sqrt(covariance[THETA][THETA])
         )
         soft = d.guard.soft
+        # (elementwise, so each entry is the same on every machine: no BLAS)
+        closed_loop = _mat(d.Ad - np.outer(d.bd, d.K_terminal))
         return cls(
             design=d,
             filter=FilterRows(
@@ -986,6 +995,8 @@ class _CycleRows:
             P_terminal=P_terminal, estimate_covariance=covariance,
             ball_information=_mat(d.ball_information),
             unsaturated_level=d.drive_max_v**2 / _inverse_quadratic(P_terminal, K_terminal),
+            closed_loop=closed_loop,
+            closed_loop_stride=_power(closed_loop, _STRIDE),
             settle_band_m=(
                 s.rest_band_m - z * math.sqrt(covariance[BALL_POSITION][BALL_POSITION])
             ),
@@ -997,6 +1008,47 @@ class _CycleRows:
                 ),
             ),
         )
+
+
+def _matmul4(a: Mat, b: Mat) -> Mat:
+    columns = tuple(zip(*b, strict=True))
+    return tuple(tuple(_dot4(row, column) for column in columns) for row in a)
+
+
+def _power(m: Mat, n: int) -> Mat:
+    result = m
+    for _ in range(n - 1):
+        result = _matmul4(result, m)
+    return result
+
+
+# The terminal set's prediction: every period for the first _EXACT_STEPS (where a moving
+# servo or ball peaks), then every _STRIDE periods (the regulator's slow tail moves the ball
+# by far less than the band's margin in that time), for at most _HORIZON_STEPS.
+_EXACT_STEPS = 100
+_STRIDE = 10
+_HORIZON_STEPS = 3000
+
+
+def regulator_keeps(
+    closed_loop: Mat, closed_loop_stride: Mat, K: Vec, P: Mat, error: Vec,
+    band_m: float, drive_v: float, level: float,
+) -> bool:
+    """Whether the linear regulator u = −K·e, from ``error``, keeps the ball within
+    ``band_m`` and its drive within ``drive_v`` at every step to come: its closed loop
+    predicted until the error is inside the invariant level set eᵀPe ≤ ``level`` (on which
+    both bounds hold for good). The set of such errors is the regulator's largest
+    constraint-admissible set, of which that level set is an inner ellipse."""
+    e, k = error, 0
+    while k < _HORIZON_STEPS:
+        if abs(e[BALL_POSITION]) > band_m or abs(_dot4(K, e)) > drive_v:
+            return False
+        # (the level falls every step: looked at every stride's steps is soon enough)
+        if k % _STRIDE == 0 and _quadratic4(P, e) <= level:
+            return True
+        step, k = (closed_loop, k + 1) if k < _EXACT_STEPS else (closed_loop_stride, k + _STRIDE)
+        e = (_dot4(step[0], e), _dot4(step[1], e), _dot4(step[2], e), _dot4(step[3], e))
+    return False
 
 
 def _inverse_quadratic(m: Mat, v: Vec) -> float:
@@ -1863,9 +1915,17 @@ class ReplanningController:
         rest band; on a sine, where its drive stays within the limit (the band is the
         sine's to keep, not the set's)."""
         rows = self._rows()
-        level = _quadratic4(rows.P_terminal, self._error())
-        return level <= factor * (
-            self.design.terminal_level if self.sine is None else rows.unsaturated_level
+        error = self._error()
+        if self.sine is not None:
+            return _quadratic4(rows.P_terminal, error) <= factor * rows.unsaturated_level
+        # where the estimate is noisier than the band, no state is sure to rest in it: the
+        # band itself, then
+        band_m = rows.settle_band_m if rows.settle_band_m > 0.0 else self.settings.rest_band_m
+        # grown by ``factor`` (a level): its bounds by its square root
+        scale = math.sqrt(factor)
+        return regulator_keeps(
+            rows.closed_loop, rows.closed_loop_stride, rows.K_terminal, rows.P_terminal, error,
+            scale * band_m, scale * self.design.drive_max_v, factor * self.design.terminal_level,
         )
 
     def _left_terminal_set(self) -> bool:
