@@ -98,7 +98,6 @@ from ballbeam.core.planning.arcs import (
     _step,
     _theta_extreme,
     plan_arcs,
-    plan_settle,
     replan,
 )
 from ballbeam.core.planning.lag_hold import _Params
@@ -607,10 +606,6 @@ class Settings:
     soft_rate_gain_per_s: float = 40.0  # how hard the rate is pulled back to the allowed rate
     rest_band_m: float = 5e-4  # the task's rest band: the ball within this of the target
     rest_band_rad: float = math.radians(0.5)  # ... and the servo within this of level
-    # Inside the rest band a plan's servo stays inside it too (``plan_settle``): its moves
-    # are a few tenths of a degree, and this drive makes them last ~10 ms (a tracker's pace,
-    # not a kick) at no cost to the ball, whose time is spent on the holds.
-    settle_drive_v: float = 1.5
     terminal_exit_factor: float = 25.0  # the terminal LQR hands back beyond this × its level
     reshape: bool = False  # re-plans without a root re-shape the remaining arcs' inputs
     headroom_v: float = 0.3  # the plan's drive kept for re-shaping
@@ -962,23 +957,14 @@ class _CycleRows:
     # the terminal LQR's closed loop over one period and over ``_STRIDE`` periods
     closed_loop: Mat
     closed_loop_stride: Mat
-    # Inside the rest band (settling plans): the ball's band less z σ of its estimate, the
-    # servo's limit (the band less the estimate's error: z σ, and half a count of bias in a
-    # slowing servo, as at the angle limit) and the design's angle guard moved to that limit
-    # (its tables are of the gap to the limit and of the servo's rate, not of where it is)
-    settle_band_m: float
-    settle_limit_rad: float
-    settle_guard: AngleGuard
+    # the terminal set's ball band: the rest band less z σ of the ball's estimate
+    terminal_band_m: float
 
     @classmethod
     def of(cls, d: _Design, s: Settings) -> _CycleRows:
         K_terminal, P_terminal = _vec(d.K_terminal), _mat(d.P_terminal)
         covariance = _mat(d.estimate_covariance)
         z = s.confidence_z
-        settle_limit = (
-            s.rest_band_rad - 0.5 * s.encoder_step_rad - z * math.sqrt(covariance[THETA][THETA])
-        )
-        soft = d.guard.soft
         # (elementwise, so each entry is the same on every machine: no BLAS)
         closed_loop = _mat(d.Ad - np.outer(d.bd, d.K_terminal))
         return cls(
@@ -997,15 +983,8 @@ class _CycleRows:
             unsaturated_level=d.drive_max_v**2 / _inverse_quadratic(P_terminal, K_terminal),
             closed_loop=closed_loop,
             closed_loop_stride=_power(closed_loop, _STRIDE),
-            settle_band_m=(
+            terminal_band_m=(
                 s.rest_band_m - z * math.sqrt(covariance[BALL_POSITION][BALL_POSITION])
-            ),
-            settle_limit_rad=settle_limit,
-            settle_guard=replace(
-                d.guard, theta_limit_rad=settle_limit,
-                soft=None if soft is None else replace(
-                    soft, theta_limit_rad=settle_limit - s.encoder_step_rad
-                ),
             ),
         )
 
@@ -1238,12 +1217,6 @@ class PlanRequest:
     # the sine's time at the request's state
     sine: tuple[float, float, float] | None = None
     sine_time_s: float = 0.0
-    # a fresh plan from inside the rest band: first one whose servo holds within
-    # ±settle_theta_rad and whose ball stays within settle_band_m of the target
-    settle_theta_rad: float = 0.0
-    settle_theta_limit_rad: float = 0.0  # (the angle a turning servo may be stopped at)
-    settle_band_m: float = 0.0
-    settle_drive_v: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -1365,17 +1338,6 @@ def _solve_plan(request: PlanRequest) -> PlanAnswer:
     if r.kind == "warm":
         assert r.plan is not None
         return _solve_warm(r, params, state)
-    if r.settle_theta_rad > 0.0:
-        settle = plan_settle(
-            params, state, target_m=r.target_m, voltage_limit_v=r.settle_drive_v,
-            theta_max_rad=r.settle_theta_rad,
-        )
-        if (
-            settle is not None
-            and settle.theta_max_rad <= r.settle_theta_limit_rad
-            and _stays_within(settle, r.settle_band_m)
-        ):
-            return PlanAnswer(r.cycle, settle, ("settle",))
     if r.kind == "near":
         empty = ArcPlan((), (), (), (0.0, 0.0, 0.0, 0.0), r.target_m, r.drive_limit_v,
                         r.theta_max_rad, params.pole_per_s, params.alpha, params.gamma)
@@ -1404,13 +1366,6 @@ def _solve_to_sine(r: PlanRequest) -> PlanAnswer:
             break
         duration_s = answer.plan.duration_s
     return answer
-
-
-def _stays_within(plan: ArcPlan, band_m: float) -> bool:
-    """Whether the plan's ball stays within ``band_m`` of its target (at the arc boundaries
-    and every millisecond between)."""
-    times = np.union1d(plan.switch_times_s, np.arange(0.0, plan.duration_s, 1e-3))
-    return bool(np.abs(plan.sample(times).states[:, BALL_POSITION]).max() <= band_m)
 
 
 def _sine_state(
@@ -1540,7 +1495,6 @@ class ReplanningController:
     reshaped: int = field(init=False, default=0)
     cold_plans: int = field(init=False, default=0)
     near_plans: int = field(init=False, default=0)
-    settle_plans: int = field(init=False, default=0)
     jumps: int = field(init=False, default=0)  # the ball's speed jumps admitted (_admit_jump)
     _jumps: JumpDetector = field(init=False, default_factory=lambda: JumpDetector())
     # the filter's (or the fixed-gain observer's) last steps, for a jump or a late sample to
@@ -1639,8 +1593,6 @@ class ReplanningController:
                 self.cold_plans += 1
             elif count == "near":
                 self.near_plans += 1
-            elif count == "settle":
-                self.settle_plans += 1
         if answer.plan is not None and not self.terminal:
             self.plan = answer.plan
             self.plan_start_cycle = request.cycle
@@ -1920,7 +1872,7 @@ class ReplanningController:
             return _quadratic4(rows.P_terminal, error) <= factor * rows.unsaturated_level
         # where the estimate is noisier than the band, no state is sure to rest in it: the
         # band itself, then
-        band_m = rows.settle_band_m if rows.settle_band_m > 0.0 else self.settings.rest_band_m
+        band_m = rows.terminal_band_m if rows.terminal_band_m > 0.0 else self.settings.rest_band_m
         # grown by ``factor`` (a level): its bounds by its square root
         scale = math.sqrt(factor)
         return regulator_keeps(
@@ -1935,42 +1887,13 @@ class ReplanningController:
 
     def request_plan(self, state: np.ndarray) -> None:
         """Ask for a cold plan from ``state`` (the run's start, before its first step)."""
-        self._request(self._settling(
-            self._plan_request("cold", self._clipped(np.array(state, dtype=float)))
-        ))
+        self._request(self._plan_request("cold", self._clipped(np.array(state, dtype=float))))
 
     def _plan_from_estimate(self, near: bool = False, state: np.ndarray | None = None) -> None:
         """A fresh plan from the estimate (or ``state``); ``near``: close to the target, where
         the four-arc guess solves it directly (no grid plan). A plan not found keeps the
         plan in force."""
-        self._request(
-            self._settling(self._plan_request("near" if near else "cold", self._clipped(state)))
-        )
-
-    def _settling(self, request: PlanRequest) -> PlanRequest:
-        """A fresh plan from inside the rest band, asked to keep the servo and the ball in it
-        (the margins: ``_CycleRows``). A sine's plans are to where it will be."""
-        s = self.settings
-        if self.sine is not None:
-            return request
-        rows = self._rows()
-        band_m, limit_rad = rows.settle_band_m, rows.settle_limit_rad
-        # the plan holds within half the band: the other half is the tracker's (its
-        # corrections of the ball tilt the servo past the plan, up to the band's guard) or
-        # for stopping a servo that turns
-        theta, _, _, position = request.state
-        if min(band_m, limit_rad) <= 0.0 or abs(position - self.target_m) > band_m or (
-            abs(theta) > limit_rad
-        ):
-            return request
-        return replace(
-            request, settle_theta_rad=0.5 * s.rest_band_rad, settle_theta_limit_rad=limit_rad,
-            settle_band_m=band_m, settle_drive_v=min(s.settle_drive_v, self.design.drive_limit_v),
-        )
-
-    def _settles(self, plan: ArcPlan) -> bool:
-        """Whether ``plan`` is a settling plan (its servo within the rest band)."""
-        return plan.theta_max_rad < self.settings.rest_band_rad
+        self._request(self._plan_request("near" if near else "cold", self._clipped(state)))
 
     def _elapsed(self) -> float:
         return (self.cycle - self.plan_start_cycle) * self.settings.period_s
@@ -1987,7 +1910,7 @@ class ReplanningController:
             self._drop_plan()
             self._plan_from_estimate(near=True)
         if not self.terminal and self.plan is None:
-            if self.cycle and self._in_terminal_set():
+            if self._in_terminal_set():
                 self.terminal = True
             else:
                 self._plan_from_estimate()
@@ -2022,9 +1945,7 @@ class ReplanningController:
             drive = math.copysign(max(abs(drive) - self._ramp_v(), 0.0), drive)
         if self.sine is not None and (self.terminal or plan is None):
             drive += feedforward
-        settling = not self.terminal and plan is not None and self._settles(plan)
-        guard = self._rows().settle_guard if settling else d.guard
-        drive = guarded_voltage(guard, as_row4(self.estimate), drive)
+        drive = guarded_voltage(d.guard, as_row4(self.estimate), drive)
         return CycleRecord(0.0, reference, drive, self.terminal, feedforward, self.estimate.copy())
 
     def _maybe_replan(self) -> None:
@@ -2032,11 +1953,6 @@ class ReplanningController:
         plan = self.plan
         assert plan is not None
         if (self.cycle - self.plan_start_cycle) % s.replan_every or self.outstanding is not None:
-            return
-        if self._settles(plan):
-            # settling inside the band: the tracker holds it on this slow plan (a re-plan's
-            # root from inside a hold is ill-posed, and a fresh one swings the servo again);
-            # its end hands over to the terminal regulator or settles again
             return
         elapsed = self._elapsed()
         sampler = self._plan_sampler(plan)
