@@ -109,7 +109,6 @@ def one_run(
         "missed": c.missed,
         "cold": c.cold_plans,
         "near": c.near_plans,
-        "reshaped": c.reshaped,
         "jumps": c.jumps,
         "drive_limit_v": c.design.drive_limit_v,
     }
@@ -184,13 +183,13 @@ def print_row(row: dict[str, Any]) -> None:
         f"α {row['alpha_ratio']:.3f} γ {row['gamma_ratio']:.3f} "
         f"d {row['deadzone_v']:.3f}±{row['deadzone_std_v']:.3f} ({row['deadzone_true_v']}) "
         f"U {row['drive_limit_v']:.2f} plans {row['replans']}/{row['missed']}/{row['cold']}/"
-        f"{row['near']}/{row['reshaped']} jumps {row['jumps']}{tap}  {case}"
+        f"{row['near']} jumps {row['jumps']}{tap}  {case}"
     )
 
 
 HEADER = (
     "rest/fl floor s relapse  max|θ|    TV  dith  identified (α, γ as true ratios; d ± σ "
-    "(true)); plan drive; re-plans/missed/cold/near/re-shaped; speed jumps found"
+    "(true)); plan drive; re-plans/missed/cold/near; speed jumps found"
 )
 
 

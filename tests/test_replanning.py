@@ -3,7 +3,6 @@ plant's own gains, and the closed loop against the task's band and the angle lim
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import replace
 
@@ -367,71 +366,6 @@ def test_the_angle_limit_holds_at_every_physics_step_on_an_extreme_plant(
     assert float(np.max(run.peak_theta_rad)) <= math.radians(52.0)
     run = run_closed_loop(params, config.initial.state(), 3.0, seed=1)
     assert float(np.max(run.peak_theta_rad)) <= math.radians(52.0)
-
-
-def _arcs_end_by_expm(
-    model_alpha: float, pole: float, gamma: float, start: np.ndarray,
-    inputs: tuple[float, ...], durations: tuple[float, ...],
-) -> np.ndarray:
-    """The end state of held inputs by the matrix exponential of the continuous model with the
-    input as a fifth (constant) state: independent of the arcs' closed forms."""
-    import scipy.linalg
-
-    A = np.zeros((5, 5))
-    A[0, 1] = 1.0
-    A[1, 1], A[1, 4] = -pole, model_alpha
-    A[2, 0] = gamma
-    A[3, 2] = 1.0
-    state = np.append(np.asarray(start, dtype=float), 0.0)
-    for u, tau in zip(inputs, durations, strict=True):
-        state[4] = u
-        state = scipy.linalg.expm(A * tau) @ state
-    return state[:4]
-
-
-@functools.cache
-def _paper_plan():  # type: ignore[no-untyped-def]
-    """The design of the prior model and its plan from the paper's start (51° limit)."""
-    from ballbeam.core.planning.arcs import plan_arcs
-
-    d = ReplanningController(Settings(), np.zeros(4)).design
-    limit = math.radians(51.0)
-    plan = plan_arcs(
-        d.identified.model(), np.array([-limit, 0.0, 0.0, 0.195]), target_m=0.0,
-        voltage_limit_v=d.drive_limit_v, theta_max_rad=limit,
-    )
-    return d, plan
-
-
-@pytest.mark.parametrize(("dx_m", "dv_m_s"), [(0.0, 0.0), (1e-4, 0.0), (0.0, 1e-3)])
-def test_a_reshaped_remainder_ends_at_rest_at_the_target(dx_m: float, dv_m_s: float) -> None:
-    """In the last hold a time-optimal re-plan has three durations for four end conditions; the
-    re-shaped one also moves the inputs, and ends at rest (checked by another integrator)."""
-    from ballbeam.core.replanning import reshape_remainder
-
-    d, plan = _paper_plan()
-    p = d.identified.params
-    limit = plan.theta_max_rad
-    elapsed = float(plan.switch_times_s[-4]) + 0.1  # inside the last hold
-    assert plan.holds[-3] != 0
-    state = plan.sample(np.array([elapsed])).states[0].copy()
-    state[2] += dv_m_s
-    state[3] += dx_m
-    shaped = reshape_remainder(
-        plan, elapsed, state, params=p, voltage_max_v=d.drive_limit_v + 0.5,
-        voltage_scale_v=0.3, theta_limit_rad=limit + 1e-9, voltage_limit_v=d.drive_limit_v,
-    )
-    assert shaped is not None
-    end = _arcs_end_by_expm(p.alpha, p.pole_per_s, p.gamma, np.array(shaped.start),
-                            shaped.input_v, shaped.duration_s_each)
-    assert end == pytest.approx(np.zeros(4), abs=1e-7)
-    assert max(abs(u) for u in shaped.input_v) <= d.drive_limit_v + 0.5
-    if dx_m == dv_m_s == 0.0:  # nothing to absorb: the plan's own remainder
-        inputs, _, taus = plan.remaining(elapsed)
-        assert shaped.input_v == pytest.approx(inputs)
-        assert shaped.duration_s_each == pytest.approx(taus, abs=1e-9)
-    else:
-        assert shaped.input_v != pytest.approx(plan.remaining(elapsed)[0])
 
 
 def test_the_filter_learns_gamma_from_every_sample() -> None:

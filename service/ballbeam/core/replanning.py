@@ -44,13 +44,10 @@ with each re-design the identification's windows since the last, ``Identificatio
   the design. q is the encoder's rounding, which holds while the servo stays inside a count:
   a still servo's angle is known to within its count, and the ball's creep says where in it.
   What the model leaves out of the ball's acceleration is taken in proportion to |θ|
-  (``ball_noise_with_angle``): at rest the estimate is as quiet as the encoder allows, and the
-  terminal regulator needs no noise threshold.
+  (``_filter``): at rest the estimate is as quiet as the encoder allows.
   A jump of the ball's speed the model does not allow (a tap) is found by a CUSUM of the
   position innovations (``JumpDetector``), and the filter runs again over the samples since
   with the speed's variance grown by it (``_admit_jump``).
-* **Re-shaping** (``reshape``, off: measured, not kept): where a time-optimal re-plan of the
-  same arcs has no root, the remaining arcs' inputs move within a headroom.
 * **Track**: drive = plan drive + K (plan state − estimate), K a discrete LQR of the identified
   model.
 * **Terminal regulator**: at the plan's end, if the error is inside the terminal LQR's set
@@ -69,7 +66,8 @@ with each re-design the identification's windows since the last, ``Identificatio
   identified motor at its lower drive bound.
 * **Dead-zone compensation**: u = v + d̂·clip(v / w, −1, 1): a ramp through zero whose width w
   is twice the standard deviation the estimate's noise gives the terminal drive, so noise does
-  not flip ±d̂.
+  not flip ±d̂. At rest the terminal drive first loses that much (a soft threshold): without
+  it the command crosses zero as often as the noise does.
 """
 
 from __future__ import annotations
@@ -93,10 +91,8 @@ from ballbeam.core.observer import (
 )
 from ballbeam.core.planning.arcs import (
     ArcPlan,
-    _free,
     _replay,
     _step,
-    _theta_extreme,
     plan_arcs,
     replan,
 )
@@ -400,122 +396,6 @@ class NoiseEstimate:
         return self.std_m * (1.0 + z * self.relative_std)
 
 
-def _reshape_system(
-    p: _Params,
-    start: tuple[float, float, float, float],
-    inputs: list[float],
-    holds: list[int],
-    taus: list[float],
-    theta_hold_rad: float,
-    scales: tuple[float, float, float, float],
-) -> tuple[np.ndarray, np.ndarray]:
-    """Scaled residuals (rest at the origin; each hold after the first arc entered at rest on
-    its limit) and their Jacobian in (durations, the full-voltage arcs' inputs). Exact: the
-    state after an arc is affine in its input, and the free response carries a change on."""
-    n = len(taus)
-    free = [i for i in range(n) if not holds[i]]
-    states = [start]
-    for u, tau in zip(inputs, taus, strict=True):
-        states.append(_step(p, states[-1], u, tau))
-    times = [0.0]
-    for tau in taus:
-        times.append(times[-1] + tau)
-    by_tau = [
-        (states[i + 1][1], -p.pole_per_s * states[i + 1][1] + p.alpha * inputs[i],
-         p.gamma * states[i + 1][0], states[i + 1][2])
-        for i in range(n)
-    ]
-    by_input = [_step(p, (0.0, 0.0, 0.0, 0.0), 1.0, taus[i]) for i in range(n)]
-    rows: list[float] = []
-    jac: list[list[float]] = []
-
-    def carried(k: int, j: int) -> list[float]:
-        row = [_free(p, by_tau[i], times[k] - times[i + 1])[j] if i < k else 0.0
-               for i in range(n)]
-        row += [_free(p, by_input[i], times[k] - times[i + 1])[j] if i < k else 0.0
-                for i in free]
-        return [v / scales[j] for v in row]
-
-    for k in range(1, n):
-        if holds[k]:
-            rows += [(states[k][0] - holds[k] * theta_hold_rad) / scales[0],
-                     states[k][1] / scales[1]]
-            jac += [carried(k, 0), carried(k, 1)]
-    rows += [states[n][j] / scales[j] for j in range(4)]
-    jac += [carried(n, j) for j in range(4)]
-    return np.array(rows), np.array(jac)
-
-
-def reshape_remainder(
-    plan: ArcPlan,
-    elapsed_s: float,
-    state: np.ndarray,
-    *,
-    params: _Params,
-    voltage_max_v: float,
-    voltage_scale_v: float,
-    theta_limit_rad: float,
-    voltage_limit_v: float,
-) -> ArcPlan | None:
-    """The plan's remaining arcs, same structure, re-shaped to end at rest at the target from
-    ``state``: each arc's duration and each full-voltage arc's input (|u| ≤ ``voltage_max_v``,
-    its sign kept) move by the least change, durations weighed in the servo's time constant
-    and inputs in ``voltage_scale_v`` (the headroom kept for this). Where a time-optimal
-    re-plan of the same structure has no root (one duration per arc against four end
-    conditions: the last stroke, a hold), the inputs' headroom absorbs the estimate's error
-    instead of a detour. None when the structure cannot absorb it."""
-    inputs, holds, taus = plan.remaining(elapsed_s)
-    n = len(taus)
-    free = [i for i in range(n) if not holds[i]]
-    equations = 4 + 2 * sum(1 for k in range(1, n) if holds[k])
-    if n + len(free) < equations or not free:
-        return None
-    theta, rate, speed, pos = (float(v) for v in state)
-    start = (theta, rate, speed, pos - plan.target_m)
-    accel = abs(params.gamma) * plan.theta_max_rad
-    time_unit = 1.0 / params.pole_per_s
-    scales = (plan.theta_max_rad, plan.voltage_limit_v * params.alpha / params.pole_per_s,
-              accel * time_unit, accel * time_unit**2)
-    weights = np.array([time_unit] * n + [voltage_scale_v] * len(free))
-    x = np.array(taus + [inputs[i] for i in free])
-    for _ in range(_RESHAPE_ITERATIONS):
-        current = list(inputs)
-        for j, i in enumerate(free):
-            current[i] = float(x[n + j])
-        r, J = _reshape_system(params, start, current, holds, x[:n].tolist(),
-                               plan.theta_max_rad, scales)
-        if float(np.max(np.abs(r))) < _RESHAPE_TOLERANCE:
-            break
-        Jw = J * weights
-        try:
-            x = x - weights * (Jw.T @ np.linalg.solve(Jw @ Jw.T, r))
-        except np.linalg.LinAlgError:
-            return None
-        if not np.all(np.isfinite(x)) or float(np.min(x[:n])) < 0.0:
-            return None  # off the structure (a negative duration): no small change absorbs it
-    else:
-        return None
-    taus_new = x[:n].tolist()
-    if min(taus_new) < 0.0:
-        return None
-    for j, i in enumerate(free):
-        u = float(x[n + j])
-        if u * inputs[i] <= 0.0 or abs(u) > voltage_max_v:
-            return None
-        inputs[i] = u
-    s = start
-    for u, tau in zip(inputs, taus_new, strict=True):
-        if _theta_extreme(params, s, u, tau) > theta_limit_rad:
-            return None
-        s = _step(params, s, u, tau)
-    return ArcPlan(
-        input_v=tuple(inputs), duration_s_each=tuple(taus_new), holds=tuple(holds), start=start,
-        target_m=plan.target_m, voltage_limit_v=voltage_limit_v,
-        theta_max_rad=plan.theta_max_rad, pole_per_s=params.pole_per_s, alpha=params.alpha,
-        gamma=params.gamma,
-    )
-
-
 @dataclass(frozen=True)
 class Identified:
     """The plant as identified, with standard deviations: θ̈ = −a θ̇ + α·drive, ẍ = γ θ,
@@ -596,8 +476,6 @@ class Settings:
     plan_theta_margin_rad: float = math.radians(0.3)  # the plan's angle stays this inside
     detour_position_m: float = 2e-3  # a re-plan that adds arcs only past this ball error ...
     detour_speed_m_s: float = 1e-2  # ... or this
-    track_ball: bool = True  # the tracker corrects the ball too (else the servo only)
-    detour_sigmas: float | None = None  # re-plans adding arcs past this Mahalanobis distance
     track_q: tuple[float, float, float, float] = (10.0, 0.0, 0.0, 1e4)
     track_r: float = 0.01
     terminal_q: tuple[float, float, float, float] = (100.0, 0.0, 0.0, 3e4)
@@ -607,20 +485,10 @@ class Settings:
     rest_band_m: float = 5e-4  # the task's rest band: the ball within this of the target
     rest_band_rad: float = math.radians(0.5)  # ... and the servo within this of level
     terminal_exit_factor: float = 25.0  # the terminal LQR hands back beyond this × its level
-    reshape: bool = False  # re-plans without a root re-shape the remaining arcs' inputs
-    headroom_v: float = 0.3  # the plan's drive kept for re-shaping
-    reshape_sigmas: float = 0.0  # ... when the ball is off the plan by more than this many σ
     # γ's error a state of the estimator (a Kalman filter on (θ, θ̇, ẋ, x, δγ, q)) rather than
     # process noise of a fixed-gain observer: the ball's acceleration error γ̃·θ is followed
     # as θ swings, and γ is learnt from every sample
     estimate_gamma: bool = True
-    # (with estimate_gamma) the unmodelled ball acceleration in proportion to |θ| (all of
-    # unmodelled_ball_m_s2 at the angle limit), and the terminal regulator's noise threshold
-    # from the filter's running covariance: the estimate at rest is as quiet as the rest is
-    ball_noise_with_angle: bool = True
-    # the terminal regulator leaves out drives below its noise (a soft threshold); without
-    # it only the dead-zone compensation's ramp shapes the small drives
-    rest_threshold: bool = True
 
 
 def dlqr(
@@ -649,15 +517,12 @@ class _Design:
     drive_max_v: float  # the drive the guard may use (lower confidence bound at full command)
     ramp_v: float  # dead-zone compensation ramp half-width (terminal regulator)
     ramp_tracking_v: float  # ... while tracking a plan
-    ball_information: np.ndarray  # inverse covariance of the estimate's (ẋ, x) error
     guard: AngleGuard
     reserve_v: float
-    reshape_max_v: float  # the drive a re-shaped plan may use
     estimate_covariance: np.ndarray  # of the estimate's error (the observer's steady state)
     process_noise: np.ndarray  # (4, 4) of the filter that estimates γ's error as a state
     ball_process_noise: np.ndarray  # (4, 4) of a unit held ball acceleration
     measurement_noise: np.ndarray  # (2, 2)
-    headroom_v: float  # the plan's drive kept below that for re-shaping
 
 
 def _design(identified: Identified, s: Settings, position_noise_m: float) -> _Design:
@@ -675,19 +540,13 @@ def _design(identified: Identified, s: Settings, position_noise_m: float) -> _De
         angle_noise_rad=s.encoder_step_rad / math.sqrt(12.0),
         position_noise_m=position_noise_m,
     )
-    if s.track_ball:
-        K, _ = dlqr(Ad, Bd, s.track_q, s.track_r)
-    else:  # the ball's errors are the re-plans': the tracker keeps the servo on the plan
-        K = np.zeros(4)
-        K[:2] = dlqr(Ad[:2, :2], Bd[:2], s.track_q[:2], s.track_r)[0]
+    K, _ = dlqr(Ad, Bd, s.track_q, s.track_r)
     K_t, P_t = dlqr(Ad, Bd, s.terminal_q, s.terminal_r)
     drive_max = _drive_max(identified, s)
     # Tracker's reserve: z σ of the drive the estimate's noise puts into the correction.
     reserve = z * math.sqrt(float(K @ observer.P_estimate @ K))
-    headroom = s.headroom_v if s.reshape else 0.0
     ramp = 2.0 * math.sqrt(float(K_t @ observer.P_estimate @ K_t))
     ramp_tracking = 2.0 * math.sqrt(float(K @ observer.P_estimate @ K))
-    ball_cov = observer.P_estimate[2:, 2:]
     # The terminal set: the largest level set of the terminal LQR's Lyapunov function on which
     # its drive stays within the limit and the ball, less z σ of the estimate's error, within
     # the rest band (so once in it, the ball never leaves the band; the servo's band is left
@@ -730,14 +589,12 @@ def _design(identified: Identified, s: Settings, position_noise_m: float) -> _De
         K_terminal=K_t,
         P_terminal=P_t,
         terminal_level=level,
-        drive_limit_v=max(0.5, drive_max - reserve - headroom),
-        reshape_max_v=max(0.5, drive_max - reserve),
-        headroom_v=max(headroom, 1e-3),
+        drive_limit_v=max(0.5, drive_max - reserve),
         estimate_covariance=observer.P_estimate,
         process_noise=process_noise_covariance(
             discrete,
             math.hypot(identified.drive_std(U), s.unmodelled_drive_v),
-            s.unmodelled_ball_m_s2 if not s.ball_noise_with_angle else 0.0,
+            0.0,  # the filter's: in proportion to |θ| (``_filter``)
         ),
         ball_process_noise=process_noise_covariance(discrete, 0.0, 1.0),
         measurement_noise=measurement_noise_covariance(
@@ -746,7 +603,6 @@ def _design(identified: Identified, s: Settings, position_noise_m: float) -> _De
         drive_max_v=drive_max,
         ramp_v=ramp,
         ramp_tracking_v=ramp_tracking,
-        ball_information=np.linalg.inv(ball_cov),
         guard=guard,
         reserve_v=reserve,
     )
@@ -793,10 +649,6 @@ def _dot6(a: Vec, b: Vec) -> float:
 def _quadratic4(m: Mat, e: Vec) -> float:
     """eᵀ M e, M (4, 4): (M e) first, then e · (M e)."""
     return _dot4(e, tuple(_dot4(row, e) for row in m))
-
-
-def _quadratic2(m: Mat, e: Vec) -> float:
-    return e[0] * (m[0][0] * e[0] + m[0][1] * e[1]) + e[1] * (m[1][0] * e[0] + m[1][1] * e[1])
 
 
 @dataclass(frozen=True)
@@ -950,7 +802,6 @@ class _CycleRows:
     K_terminal: Vec
     P_terminal: Mat
     estimate_covariance: Mat
-    ball_information: Mat  # (2, 2)
     # the largest level of the terminal LQR's Lyapunov function on which its drive stays
     # within the drive limit (a sine's terminal set)
     unsaturated_level: float
@@ -979,7 +830,6 @@ class _CycleRows:
             ),
             L=_mat(d.L), K=_vec(d.K), K_terminal=K_terminal,
             P_terminal=P_terminal, estimate_covariance=covariance,
-            ball_information=_mat(d.ball_information),
             unsaturated_level=d.drive_max_v**2 / _inverse_quadratic(P_terminal, K_terminal),
             closed_loop=closed_loop,
             closed_loop_stride=_power(closed_loop, _STRIDE),
@@ -1208,10 +1058,6 @@ class PlanRequest:
     elapsed_s: float = 0.0
     far: bool = False  # the ball is far off the plan: a detour is taken
     moved: bool = False  # the identified model moved since the plan was made
-    reshape: bool = False  # Settings.reshape
-    significant: bool = False  # the ball's miss is past reshape_sigmas
-    reshape_max_v: float = 0.0
-    headroom_v: float = 0.0
     cold_state: tuple[float, float, float, float] | None = None  # a detour's cold plan from
     # (a sine) the plan ends where the sine is then: (amplitude m, period s, offset m), and
     # the sine's time at the request's state
@@ -1410,20 +1256,10 @@ def _solve_warm(r: PlanRequest, params: _Params, from_state: np.ndarray) -> Plan
     )
     counts: tuple[str, ...] = ("replan",)
     keeps_arcs = new is not None and len(new.input_v) <= len(plan.shifted(r.elapsed_s)[0])
-    if new is not None and (keeps_arcs or r.far or (r.moved and not r.reshape)):
+    if new is not None and (keeps_arcs or r.far or r.moved):
         return PlanAnswer(r.cycle, new, counts)
     if new is None:
         counts += ("missed",)
-    if r.reshape and (r.significant or r.moved):
-        # no time-optimal root without a detour: the remaining arcs' inputs absorb the
-        # estimate's error (and a model's change) in the headroom kept for it
-        shaped = reshape_remainder(
-            plan, r.elapsed_s, from_state, params=params,
-            voltage_max_v=r.reshape_max_v, voltage_scale_v=r.headroom_v,
-            theta_limit_rad=r.theta_max_rad, voltage_limit_v=r.drive_limit_v,
-        )
-        if shaped is not None:
-            return PlanAnswer(r.cycle, shaped, (*counts, "reshaped"))
     if (r.far or (r.moved and new is None)) and r.cold_state is not None:
         if r.sine is not None:
             detour = _solve_to_sine(replace(r, kind="near", state=r.cold_state))
@@ -1492,7 +1328,6 @@ class ReplanningController:
     cycle: int = field(init=False, default=0)
     replans: int = field(init=False, default=0)
     missed: int = field(init=False, default=0)
-    reshaped: int = field(init=False, default=0)
     cold_plans: int = field(init=False, default=0)
     near_plans: int = field(init=False, default=0)
     jumps: int = field(init=False, default=0)  # the ball's speed jumps admitted (_admit_jump)
@@ -1587,8 +1422,6 @@ class ReplanningController:
                 self.replans += 1
             elif count == "missed":
                 self.missed += 1
-            elif count == "reshaped":
-                self.reshaped += 1
             elif count == "cold":
                 self.cold_plans += 1
             elif count == "near":
@@ -1733,14 +1566,12 @@ class ReplanningController:
         """One Kalman step on (θ, θ̇, ẋ, x, δγ, q): ẍ = (γ̂ + δγ)·θ, δγ constant, q the
         encoder's rounding (``filter_step``)."""
         s = self.settings
-        ball_noise_var = 0.0
-        if s.ball_noise_with_angle:
-            # what the model leaves out of the ball's acceleration is a fraction of γθ (the
-            # nonlinear ball, a gain); at θ = 0 the servo's unmeasured fraction of a count is
-            # the filter's rounding state, not noise
-            ball_noise_var = (
-                s.unmodelled_ball_m_s2 * float(self.estimate[THETA]) / s.theta_limit_rad
-            ) ** 2
+        # what the model leaves out of the ball's acceleration is a fraction of γθ (the
+        # nonlinear ball, a gain; all of unmodelled_ball_m_s2 at the angle limit); at θ = 0 the
+        # servo's unmeasured fraction of a count is the filter's rounding state, not noise
+        ball_noise_var = (
+            s.unmodelled_ball_m_s2 * float(self.estimate[THETA]) / s.theta_limit_rad
+        ) ** 2
         step = _FilterInput(
             (*self.estimate.tolist(), self._gamma_error, self._rounding_rad), self._covariance,
             self._rows().filter,
@@ -1939,7 +1770,7 @@ class ReplanningController:
             r, e = reference.tolist(), self.estimate.tolist()
             error = (r[0] - e[0], r[1] - e[1], r[2] - e[2], r[3] - e[3])
             drive = feedforward + _dot4(self._rows().K, error)
-        if self.terminal and self.settings.rest_threshold:
+        if self.terminal:
             # at rest every drive smaller than the estimate's noise is a reaction to noise:
             # a soft threshold (continuous) leaves it out (the sine's own drive is no reaction)
             drive = math.copysign(max(abs(drive) - self._ramp_v(), 0.0), drive)
@@ -1966,20 +1797,13 @@ class ReplanningController:
         # for the identified model and drive as they are now
         from_state = np.array([on_plan[0], on_plan[1], est[2], est[3]])
         moved = _moved(plan, d.identified.params, d.drive_limit_v, s.model_change)
-        miss = (float(est[2] - on_plan[2]), float(est[3] - on_plan[3] - plan.target_m))
-        information = self._rows().ball_information
-        if s.detour_sigmas is None:
-            far = abs(est[3] - (on_plan[3] + plan.target_m)) > s.detour_position_m or abs(
-                est[2] - on_plan[2]
-            ) > s.detour_speed_m_s
-        else:
-            far = _quadratic2(information, miss) > s.detour_sigmas**2
+        far = abs(est[3] - (on_plan[3] + plan.target_m)) > s.detour_position_m or abs(
+            est[2] - on_plan[2]
+        ) > s.detour_speed_m_s
         self._request(replace(
             self._plan_request("warm", from_state),
             target_m=plan.target_m,  # (a sine's plan ends where the sine was to be)
-            plan=plan, elapsed_s=elapsed, far=bool(far), moved=moved, reshape=s.reshape,
-            significant=_quadratic2(information, miss) > s.reshape_sigmas**2,
-            reshape_max_v=d.reshape_max_v, headroom_v=d.headroom_v,
+            plan=plan, elapsed_s=elapsed, far=bool(far), moved=moved,
             cold_state=_row(self._clipped(from_state if moved else None)),
         ))
 
@@ -1990,12 +1814,12 @@ class ReplanningController:
 
     def _ramp_v(self) -> float:
         """Twice the σ of the terminal drive the estimate's error carries: from the design's
-        steady observer, or the filter's running covariance (``ball_noise_with_angle``), the
+        steady observer, or the filter's running covariance (``estimate_gamma``), the
         encoder's rounding given: that share of the error moves only as the servo crosses a
         count, so the compensation cannot chatter on it (counted, a sine's small drives went
         under-compensated)."""
         d = self.design
-        if not (self.settings.estimate_gamma and self.settings.ball_noise_with_angle):
+        if not self.settings.estimate_gamma:
             return d.ramp_v
         C, K = self._covariance, self._rows().K_terminal
         # Kᵀ (P − c cᵀ / P_qq) K, c the state's covariance with q
