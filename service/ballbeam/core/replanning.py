@@ -120,10 +120,6 @@ _DEADZONE_GRID_V = 0.005
 _ENCODER_WHITE_FRACTION = 0.1
 # Singular values below this fraction of the largest: columns that coincide (counted once).
 _RANK_TOLERANCE = 1e-9
-# The re-shaping solve (Gauss-Newton on exact Jacobians): its stopping test on residuals in
-# the problem's own units, and its iteration bound.
-_RESHAPE_TOLERANCE = 1e-9
-_RESHAPE_ITERATIONS = 8
 # The ball's speed jumps (JumpDetector): a CUSUM's drift per sample and its threshold, in
 # standard deviations of the position innovation.
 _JUMP_DRIFT = 1.5
