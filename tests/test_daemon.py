@@ -38,6 +38,7 @@ from ballbeam.runtime.daemon.command_out import CommandOut
 from ballbeam.runtime.daemon.intake import SensorIntake, SentCommands
 from ballbeam.runtime.daemon.loop import PERIOD_OFFSET_AGREEMENT, ControllerDaemon
 from ballbeam.runtime.daemon.node import run_daemon
+from ballbeam.runtime.planner import PlannerProcess
 from ballbeam.runtime.stop import StopFlag
 from ballbeam.runtime.ticker import Tick
 from ballbeam_emulator.node import PlantEmulator, arrival_ns
@@ -352,6 +353,17 @@ def test_what_waits_for_a_command_is_written_before_the_daemon_waits_for_its_pla
     record would miss the recorder's flushes for as long as the planner takes)."""
     events: list[tuple[str, int]] = []
     waiting, record = ControllerDaemon._take_in_while_waiting, Recorder.record
+    receive = PlannerProcess.receive
+    polls = [0]
+
+    def slow_planner(self, timeout_s=0.0):  # type: ignore[no-untyped-def]
+        # every other poll the daemon waits on finds nothing yet: a planner slower than the
+        # loop, whatever the machine's load (a loaded daemon gave its planner time enough)
+        if timeout_s != 0.0:
+            polls[0] += 1
+            if polls[0] % 2:
+                return []
+        return receive(self, timeout_s)
 
     def wait(self):  # type: ignore[no-untyped-def]
         waiting(self)  # (its first poll of the bus is at once: what it records comes first)
@@ -364,6 +376,7 @@ def test_what_waits_for_a_command_is_written_before_the_daemon_waits_for_its_pla
 
     monkeypatch.setattr(ControllerDaemon, "_take_in_while_waiting", wait)
     monkeypatch.setattr(Recorder, "record", recording_)
+    monkeypatch.setattr(PlannerProcess, "receive", slow_planner)
     config = virtual_config(0.3, "run.mode='lockstep'", "controller.kind='replanning'")
     assert run_in_process(config, tmp_path / "run.mcap") == "completed"
     period_ns = round(config.controller.period_s * 1e9)
