@@ -152,9 +152,9 @@ def test_a_flood_of_foreign_frames_is_rejected_and_counted_while_the_loop_holds_
     # No noise got through: no full-scale spoofed reading was used, the plant never saw a
     # spoofed command (it applied at most what the daemon sent) and its watchdog never tripped.
     sensor = outcome.log.topics["/sensor"].values
-    fresh = sensor["fresh"] == 1
-    assert np.abs(sensor["angle_counts"][fresh]).max() < 32767
-    assert np.abs(sensor["position_counts"][fresh]).max() < 32767
+    taken = sensor["fresh"] >= 1  # on time or late
+    assert np.abs(sensor["angle_counts"][taken]).max() < 32767
+    assert np.abs(sensor["position_counts"][taken]).max() < 32767
     assert outcome.emulator["commands_applied"] <= len(outcome.log.topics["/can/tx"])
     assert not (sensor["status"] & STATUS_WATCHDOG).any(), "the plant's watchdog tripped"
     assert_watchdog_tripped_only_when_the_daemon_was_silent(outcome)

@@ -42,9 +42,12 @@ def kill_emulator_then_daemon_lost(bench: Bench, after_s: float) -> None:
     assert daemon_exit == EXIT_PLANT_LOST, bench.stderr(bench.daemon)[-2000:]
 
 
-def _last_fresh_cycle(log: RunLog, before_cycle: int) -> int:
+def _last_sample_cycle(log: RunLog, before_cycle: int) -> int:
+    """The last cycle before ``before_cycle`` that took a sample, on time or late: a late
+    sample (``fresh`` 1 + n, read n cycles behind the stream on a loaded host) shows the plant
+    alive as much as one of its own period, and restarts the timeout the same."""
     sensor = log.topics["/sensor"].values
-    mask = (sensor["fresh"] == 1) & (sensor["cycle"] < before_cycle)
+    mask = (sensor["fresh"] >= 1) & (sensor["cycle"] < before_cycle)
     return int(sensor["cycle"][mask].max())
 
 
@@ -81,20 +84,20 @@ def test_emulator_killed_realtime_daemon_faults_to_0v_and_finishes_its_file(
     assert summary_meta(log)["end_reason"] == "plant_lost"
     # The last timeout is the kill's (a scheduling hiccup may have caused a brief earlier one).
     fault_cycle = int(faults(log, "sensor_timeout")[-1]["cycle"])
-    last_fresh = _last_fresh_cycle(log, fault_cycle)
+    last_sample = _last_sample_cycle(log, fault_cycle)
     executed = log.topics["/timing"].values["cycle"]
 
     def first_executed(at_least: int) -> int:
         return int(executed[executed >= at_least][0])
 
     # The fault came at the first executed cycle at least TIMEOUT_PERIODS after the last sample.
-    assert fault_cycle == first_executed(last_fresh + TIMEOUT_PERIODS), (
-        last_fresh,
+    assert fault_cycle == first_executed(last_sample + TIMEOUT_PERIODS), (
+        last_sample,
         fault_cycle,
         executed[-20:],
     )
     if not stall_daemon:
-        assert fault_cycle - last_fresh <= TIMEOUT_PERIODS
+        assert fault_cycle - last_sample <= TIMEOUT_PERIODS
     else:  # the second stall did happen, inside the silence
         skipped = log.topics["/timing"].values["skipped"]
         assert (skipped[executed > fault_cycle] >= 20).any(), skipped[executed > fault_cycle]
@@ -110,9 +113,9 @@ def test_emulator_killed_realtime_daemon_faults_to_0v_and_finishes_its_file(
     # Then the plant is declared lost after plant_lost_s of silence and the run ends.
     lost = faults(log, "plant_lost")
     assert len(lost) == 1
-    lost_after_periods = int(lost[0]["cycle"]) - last_fresh
+    lost_after_periods = int(lost[0]["cycle"]) - last_sample
     plant_lost_periods = round(DEFAULTS.controller.plant_lost_s * 1e9 / PERIOD_NS)
-    assert int(lost[0]["cycle"]) == first_executed(last_fresh + plant_lost_periods)
+    assert int(lost[0]["cycle"]) == first_executed(last_sample + plant_lost_periods)
     assert "reason=plant_lost" in events(log, "daemon_stop")[0]["detail"]
     assert verify(log).ok
     replay = ballbeam("replay", str(bench.log_path))
@@ -120,7 +123,7 @@ def test_emulator_killed_realtime_daemon_faults_to_0v_and_finishes_its_file(
     assert "plant_lost" in replay.stdout
     figure(
         f"emulator_kill_{'stalled' if stall_daemon else 'plain'}",
-        {"detection_periods": fault_cycle - last_fresh, "plant_lost_periods": lost_after_periods},
+        {"detection_periods": fault_cycle - last_sample, "plant_lost_periods": lost_after_periods},
     )
 
 
@@ -136,15 +139,15 @@ def test_with_the_launchers_link_a_killed_emulator_gets_0v_at_the_first_silent_p
         kill_emulator_then_daemon_lost(bench, random.Random(5).uniform(0.4, 1.0))
     log = read_log(bench.log_path)
     fault_cycle = int(faults(log, "sensor_timeout")[-1]["cycle"])
-    last_fresh = _last_fresh_cycle(log, fault_cycle)
+    last_sample = _last_sample_cycle(log, fault_cycle)
     executed = log.topics["/timing"].values["cycle"]
     # The first executed cycle after the last sample (one period, if on time) is the fault.
-    assert fault_cycle == int(executed[executed > last_fresh][0]), (last_fresh, fault_cycle)
+    assert fault_cycle == int(executed[executed > last_sample][0]), (last_sample, fault_cycle)
     command = log.topics["/command"].values
     after = command["cycle"] >= fault_cycle
     assert (command["enable"][after] == 0).all() and (command["voltage_v"][after] == 0.0).all()
     assert verify(log).ok
-    figure("emulator_kill_linked", {"detection_periods": fault_cycle - last_fresh})
+    figure("emulator_kill_linked", {"detection_periods": fault_cycle - last_sample})
 
 
 @pytest.mark.bus
