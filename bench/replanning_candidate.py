@@ -107,6 +107,7 @@ def one_run(
         "deadzone_std_v": ident.deadzone_std_v,
         "replans": c.replans,
         "missed": c.missed,
+        "kept": c.kept_plans,
         "cold": c.cold_plans,
         "near": c.near_plans,
         "jumps": c.jumps,
@@ -182,14 +183,14 @@ def print_row(row: dict[str, Any]) -> None:
         f"{row['theta_deg']:7.3f} {row['tv']:5.2f} {row['dither_hz']:5.1f} "
         f"α {row['alpha_ratio']:.3f} γ {row['gamma_ratio']:.3f} "
         f"d {row['deadzone_v']:.3f}±{row['deadzone_std_v']:.3f} ({row['deadzone_true_v']}) "
-        f"U {row['drive_limit_v']:.2f} plans {row['replans']}/{row['missed']}/{row['cold']}/"
-        f"{row['near']} jumps {row['jumps']}{tap}  {case}"
+        f"U {row['drive_limit_v']:.2f} plans {row['replans']}/{row['missed']}/{row['kept']}/"
+        f"{row['cold']}/{row['near']} jumps {row['jumps']}{tap}  {case}"
     )
 
 
 HEADER = (
     "rest/fl floor s relapse  max|θ|    TV  dith  identified (α, γ as true ratios; d ± σ "
-    "(true)); plan drive; re-plans/missed/cold/near; speed jumps found"
+    "(true)); plan drive; re-plans/missed/kept/cold/near; speed jumps found"
 )
 
 

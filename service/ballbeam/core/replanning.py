@@ -36,8 +36,13 @@ with each re-design the identification's windows since the last, ``Identificatio
   higher: the prior alone is broader than the range), less a reserve for the tracker sized
   from the noise its correction carries. Every 10 ms the remaining plan is re-solved warm from the
   plan's own servo state and the estimated ball (the servo's small errors are the tracker's).
-  A re-plan that adds arcs (a detour) is taken only when the ball is off by far more than the
-  estimate's noise; a tap or a new target is far, and is planned from the state then.
+  Rest is reached in the terminal set, not at the exact target: a re-plan that ends later
+  than the plan in force is taken only if that plan, tracked on (the identified model, the
+  tracking law and the angle guard, stepped to its end), would not end in the set with the
+  servo in its rest band; arcs are then added as needed. (A path to the exact point from a
+  state a little off the plan takes a time that grows as a root of the error: re-planned so
+  every 10 ms, the end kept receding.) When the ball is off by far more than the estimate's
+  noise (a tap, a new target) the plan is made from the state then.
 * **Estimate** (``estimate_gamma``): a Kalman filter on (θ, θ̇, ẋ, x, δγ, q), δγ the error of
   the design's γ: the ball's acceleration error δγ·θ is followed as θ swings (a fixed-gain
   observer lags it by 1–2.5 mm/s through a stroke), γ is learnt from every sample and handed to
@@ -788,6 +793,65 @@ class _ObserverInput(NamedTuple):
 
 
 @dataclass(frozen=True)
+class EndCheck:
+    """What the planner needs to tell where the plan in force ends if it is tracked on: the
+    identified model over a period and the tracking gain (to predict the tracked end), and the
+    terminal set (:func:`regulator_keeps`'s arguments) to judge that end by."""
+
+    period_s: float
+    Ad: Mat
+    bd: Vec
+    K: Vec
+    drive_v: float
+    closed_loop: Mat
+    closed_loop_stride: Mat
+    K_terminal: Vec
+    P_terminal: Mat
+    band_m: float
+    level: float
+    guard: AngleGuard
+    # the rest band's servo angle: the regulator, a gentle servo loop, would take long to
+    # level a servo the plan's end left outside it
+    theta_band_rad: float
+
+    def keeps(self, plan: ArcPlan, elapsed_s: float, estimate: Vec) -> bool:
+        """Whether ``plan``, tracked on from ``estimate`` (absolute position) at ``elapsed_s``
+        into it, ends inside the terminal set (and the servo inside the rest band)."""
+        end = self.tracked_end(plan, elapsed_s, estimate)
+        return bool(abs(end[THETA]) <= self.theta_band_rad) and regulator_keeps(
+            self.closed_loop, self.closed_loop_stride, self.K_terminal, self.P_terminal,
+            end, self.band_m, self.drive_v, self.level,
+        )
+
+    def tracked_end(self, plan: ArcPlan, elapsed_s: float, estimate: Vec) -> Vec:
+        """The state (relative to the target) at the end of ``plan`` tracked on from
+        ``estimate``: the identified model stepped every period under u = u_plan + K·(r − x)
+        through the angle guard (its barrier and the drive's bound are what leave an error
+        uncorrected where the plan rides the angle limit), the plan sampled at once."""
+        steps = max(0, math.ceil((plan.duration_s - elapsed_s) / self.period_s))
+        samples = plan.sample(elapsed_s + self.period_s * np.arange(steps))
+        (a00, a01, a02, a03), (a10, a11, a12, a13), (a20, a21, a22, a23), (
+            a30, a31, a32, a33) = self.Ad
+        b0, b1, b2, b3 = self.bd
+        k0, k1, k2, k3 = self.K
+        guard = self.guard
+        x0, x1, x2, x3 = estimate
+        x3 -= plan.target_m
+        for (r0, r1, r2, r3), drive_v in zip(
+            samples.states.tolist(), samples.input_v.tolist(), strict=True
+        ):
+            u = guarded_voltage(guard, (x0, x1, x2, x3), drive_v + (
+                k0 * (r0 - x0) + k1 * (r1 - x1) + k2 * (r2 - x2) + k3 * (r3 - x3)))
+            x0, x1, x2, x3 = (
+                a00 * x0 + a01 * x1 + a02 * x2 + a03 * x3 + b0 * u,
+                a10 * x0 + a11 * x1 + a12 * x2 + a13 * x3 + b1 * u,
+                a20 * x0 + a21 * x1 + a22 * x2 + a23 * x3 + b2 * u,
+                a30 * x0 + a31 * x1 + a32 * x2 + a33 * x3 + b3 * u,
+            )
+        return (x0, x1, x2, x3)
+
+
+@dataclass(frozen=True)
 class _CycleRows:
     """A design's matrices the cycle uses, as tuples of floats (made once a design)."""
 
@@ -806,6 +870,7 @@ class _CycleRows:
     closed_loop_stride: Mat
     # the terminal set's ball band: the rest band less z σ of the ball's estimate
     terminal_band_m: float
+    end_check: EndCheck
 
     @classmethod
     def of(cls, d: _Design, s: Settings) -> _CycleRows:
@@ -814,6 +879,8 @@ class _CycleRows:
         z = s.confidence_z
         # (elementwise, so each entry is the same on every machine: no BLAS)
         closed_loop = _mat(d.Ad - np.outer(d.bd, d.K_terminal))
+        closed_loop_stride = _power(closed_loop, _STRIDE)
+        terminal_band_m = s.rest_band_m - z * math.sqrt(covariance[BALL_POSITION][BALL_POSITION])
         return cls(
             design=d,
             filter=FilterRows(
@@ -828,9 +895,15 @@ class _CycleRows:
             P_terminal=P_terminal, estimate_covariance=covariance,
             unsaturated_level=d.drive_max_v**2 / _inverse_quadratic(P_terminal, K_terminal),
             closed_loop=closed_loop,
-            closed_loop_stride=_power(closed_loop, _STRIDE),
-            terminal_band_m=(
-                s.rest_band_m - z * math.sqrt(covariance[BALL_POSITION][BALL_POSITION])
+            closed_loop_stride=closed_loop_stride,
+            terminal_band_m=terminal_band_m,
+            end_check=EndCheck(
+                period_s=s.period_s, Ad=_mat(d.Ad), bd=_vec(d.bd), K=_vec(d.K),
+                drive_v=d.drive_max_v, closed_loop=closed_loop,
+                closed_loop_stride=closed_loop_stride, K_terminal=K_terminal,
+                P_terminal=P_terminal,
+                band_m=terminal_band_m if terminal_band_m > 0.0 else s.rest_band_m,
+                level=d.terminal_level, guard=d.guard, theta_band_rad=s.rest_band_rad,
             ),
         )
 
@@ -1055,6 +1128,10 @@ class PlanRequest:
     far: bool = False  # the ball is far off the plan: a detour is taken
     moved: bool = False  # the identified model moved since the plan was made
     cold_state: tuple[float, float, float, float] | None = None  # a detour's cold plan from
+    # the estimate, and what tells whether the plan in force ends in the terminal set from it
+    # (a re-plan that ends later is then not taken)
+    estimate: tuple[float, float, float, float] | None = None
+    end_check: EndCheck | None = None
     # (a sine) the plan ends where the sine is then: (amplitude m, period s, offset m), and
     # the sine's time at the request's state
     sine: tuple[float, float, float] | None = None
@@ -1251,6 +1328,24 @@ def _solve_warm(r: PlanRequest, params: _Params, from_state: np.ndarray) -> Plan
         repairs=r.far or r.moved,
     )
     counts: tuple[str, ...] = ("replan",)
+    check = r.end_check
+    if check is not None and r.estimate is not None and not r.far:
+        # Rest is reached in the terminal set, not at the exact target: a path to the exact
+        # target from a state a little off the plan can take far longer than the plan has
+        # left (its time grows as a root of the error), and re-planned every period it ends
+        # ever later. So the plan in force is kept while, tracked on, it ends in the set; a
+        # path with arcs added is taken only when it does not.
+        left_s = plan.duration_s - r.elapsed_s
+        if new is not None and new.duration_s <= left_s + check.period_s:
+            return PlanAnswer(r.cycle, new, counts)
+        if check.keeps(plan, r.elapsed_s, r.estimate):
+            return PlanAnswer(r.cycle, None, (*counts, "kept"))
+        if not r.moved:
+            new = replan(
+                warm, r.elapsed_s, from_state, target_m=r.target_m, params=params, repairs=True
+            )
+        if new is not None:
+            return PlanAnswer(r.cycle, new, counts)
     keeps_arcs = new is not None and len(new.input_v) <= len(plan.shifted(r.elapsed_s)[0])
     if new is not None and (keeps_arcs or r.far or r.moved):
         return PlanAnswer(r.cycle, new, counts)
@@ -1326,6 +1421,7 @@ class ReplanningController:
     missed: int = field(init=False, default=0)
     cold_plans: int = field(init=False, default=0)
     near_plans: int = field(init=False, default=0)
+    kept_plans: int = field(init=False, default=0)  # later-ending re-plans not taken
     jumps: int = field(init=False, default=0)  # the ball's speed jumps admitted (_admit_jump)
     _jumps: JumpDetector = field(init=False, default_factory=lambda: JumpDetector())
     # the filter's (or the fixed-gain observer's) last steps, for a jump or a late sample to
@@ -1422,6 +1518,8 @@ class ReplanningController:
                 self.cold_plans += 1
             elif count == "near":
                 self.near_plans += 1
+            elif count == "kept":
+                self.kept_plans += 1
         if answer.plan is not None and not self.terminal:
             self.plan = answer.plan
             self.plan_start_cycle = request.cycle
@@ -1801,6 +1899,8 @@ class ReplanningController:
             target_m=plan.target_m,  # (a sine's plan ends where the sine was to be)
             plan=plan, elapsed_s=elapsed, far=bool(far), moved=moved,
             cold_state=_row(self._clipped(from_state if moved else None)),
+            estimate=_row(est),
+            end_check=self._rows().end_check if self.sine is None else None,
         ))
 
     def _plan_sampler(self, plan: ArcPlan) -> _PlanSampler:
