@@ -660,8 +660,8 @@ def test_a_real_time_run_that_overran_replays_bit_for_bit_with_its_lookahead(
         sensors["cycle"].tolist(), sensors["fresh"].tolist(), sensors["counter"].tolist(),
         strict=True,
     ):
-        if fresh == 1:  # a sample of its own period (1 + n: read n cycles late)
-            seen = (counter - cycle) % 256
+        if fresh >= 1:  # a sample taken: of its own period, or (1 + n) read n cycles late
+            seen = (counter + fresh - 1 - cycle) % 256
             candidate, agreement = seen, (agreement + 1 if seen == candidate else 1)
             if agreement >= PERIOD_OFFSET_AGREEMENT:
                 offset = candidate

@@ -323,8 +323,10 @@ class ControllerDaemon:
             # A late sample still shows the plant alive, and the law takes it for the period
             # it is of: the estimate is of now again.
             self.cycles_since_sensor = 0
-            if self.names_periods and not age_cycles:
-                self._learn_period_offset(sample.counter, cycle)
+            if self.names_periods:
+                # a sample read n cycles behind the stream is of the period n back: it tells
+                # the offset as well (on a loaded host every sample can come so, for good)
+                self._learn_period_offset(sample.counter + age_cycles, cycle)
         timeout = self._sensor_timeout_periods()
         self._take_plans()
         if self.law.started and self.cycles_since_sensor >= timeout:
