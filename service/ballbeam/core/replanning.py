@@ -794,9 +794,9 @@ class _ObserverInput(NamedTuple):
 
 @dataclass(frozen=True)
 class EndCheck:
-    """What the planner needs to tell where the plan in force ends if it is tracked on: the
-    identified model over a period and the tracking gain (to predict the tracked end), and the
-    terminal set (:func:`regulator_keeps`'s arguments) to judge that end by."""
+    """The terminal set (:func:`regulator_keeps`'s arguments), and what the planner needs to
+    tell where the plan in force ends if it is tracked on: the identified model over a period
+    and the tracking gain."""
 
     period_s: float
     Ad: Mat
@@ -814,14 +814,20 @@ class EndCheck:
     # level a servo the plan's end left outside it
     theta_band_rad: float
 
+    def admits(self, error: Vec, factor: float = 1.0) -> bool:
+        """Whether ``error`` (from rest at the target) is inside the terminal set grown by
+        ``factor`` (a level: its bounds by the square root)."""
+        scale = math.sqrt(factor)
+        return regulator_keeps(
+            self.closed_loop, self.closed_loop_stride, self.K_terminal, self.P_terminal, error,
+            scale * self.band_m, scale * self.drive_v, factor * self.level,
+        )
+
     def keeps(self, plan: ArcPlan, elapsed_s: float, estimate: Vec) -> bool:
         """Whether ``plan``, tracked on from ``estimate`` (absolute position) at ``elapsed_s``
         into it, ends inside the terminal set (and the servo inside the rest band)."""
         end = self.tracked_end(plan, elapsed_s, estimate)
-        return bool(abs(end[THETA]) <= self.theta_band_rad) and regulator_keeps(
-            self.closed_loop, self.closed_loop_stride, self.K_terminal, self.P_terminal,
-            end, self.band_m, self.drive_v, self.level,
-        )
+        return bool(abs(end[THETA]) <= self.theta_band_rad) and self.admits(end)
 
     def tracked_end(self, plan: ArcPlan, elapsed_s: float, estimate: Vec) -> Vec:
         """The state (relative to the target) at the end of ``plan`` tracked on from
@@ -902,6 +908,8 @@ class _CycleRows:
                 drive_v=d.drive_max_v, closed_loop=closed_loop,
                 closed_loop_stride=closed_loop_stride, K_terminal=K_terminal,
                 P_terminal=P_terminal,
+                # where the estimate is noisier than the band, no state is sure to rest in
+                # it: the band itself, then
                 band_m=terminal_band_m if terminal_band_m > 0.0 else s.rest_band_m,
                 level=d.terminal_level, guard=d.guard, theta_band_rad=s.rest_band_rad,
             ),
@@ -1795,15 +1803,7 @@ class ReplanningController:
         error = self._error()
         if self.sine is not None:
             return _quadratic4(rows.P_terminal, error) <= factor * rows.unsaturated_level
-        # where the estimate is noisier than the band, no state is sure to rest in it: the
-        # band itself, then
-        band_m = rows.terminal_band_m if rows.terminal_band_m > 0.0 else self.settings.rest_band_m
-        # grown by ``factor`` (a level): its bounds by its square root
-        scale = math.sqrt(factor)
-        return regulator_keeps(
-            rows.closed_loop, rows.closed_loop_stride, rows.K_terminal, rows.P_terminal, error,
-            scale * band_m, scale * self.design.drive_max_v, factor * self.design.terminal_level,
-        )
+        return rows.end_check.admits(error, factor)
 
     def _left_terminal_set(self) -> bool:
         """Whether the state has left the terminal set grown by ``terminal_exit_factor`` (the
